@@ -1,0 +1,1 @@
+"""Dense correspondence backends: temporal optical flow and stereo parallax flow."""
