@@ -1,1 +1,22 @@
 """Dense correspondence backends: temporal optical flow and stereo parallax flow."""
+from __future__ import annotations
+
+from vo.config import CorrespondenceConfig
+from vo.correspondence.base import FlowEstimator
+from vo.correspondence.dis import DisFlow
+
+
+def make_flow_estimators(config: CorrespondenceConfig, device: str = "cpu") -> tuple[FlowEstimator, FlowEstimator]:
+    """The temporal and the stereo flow estimators of ``config`` (they may be the same object)."""
+    if config.backend == "dis":
+        return (DisFlow(config.dis_preset, config.dis_variational_refinement),
+                DisFlow(config.dis_stereo_preset, config.dis_variational_refinement))
+    if config.backend == "raft":
+        from vo.correspondence.raft_backend import RaftFlow
+
+        raft = RaftFlow(config.raft_checkpoint or None, small=config.raft_small, iters=config.raft_iters, device=device)
+        return raft, raft
+    raise ValueError(f"unknown correspondence.backend '{config.backend}' (dis, raft)")
+
+
+__all__ = ["FlowEstimator", "DisFlow", "make_flow_estimators"]

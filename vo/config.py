@@ -1,0 +1,103 @@
+"""Configuration of the VO core, one dataclass per concern."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class CorrespondenceConfig:
+    """Dense correspondences.
+
+    Attributes:
+        backend: ``dis`` (OpenCV DIS optical flow, no weights needed) or ``raft`` (needs
+            ``raft_checkpoint``, the published ``raft-things.pth`` layout).
+        dis_preset: DIS preset for the temporal flow: ``ultrafast`` | ``fast`` | ``medium``.
+        dis_stereo_preset: DIS preset for the stereo parallax flow.
+        dis_variational_refinement: run DIS's variational refinement (smoother, slower).
+        raft_checkpoint: path to a RAFT checkpoint.
+        raft_small: the checkpoint is RAFT-small.
+        raft_iters: RAFT update iterations.
+        lr_check_px: left-right stereo consistency threshold (pixels); 0 disables the check
+            (it costs a second stereo flow).
+        fb_check_px: forward-backward temporal flow consistency threshold (pixels); 0 disables it
+            (it costs a second temporal flow).
+        max_vertical_parallax_px: pixels whose stereo flow has a larger vertical part are invalid
+            (rectified views have none); 0 disables the check.
+    """
+
+    backend: str = "dis"
+    dis_preset: str = "medium"
+    dis_stereo_preset: str = "medium"
+    dis_variational_refinement: bool = True
+    raft_checkpoint: str = ""
+    raft_small: bool = False
+    raft_iters: int = 12
+    lr_check_px: float = 0.0
+    fb_check_px: float = 0.0
+    max_vertical_parallax_px: float = 2.0
+
+
+@dataclass
+class DepthConfig:
+    """Depth from disparity.
+
+    Attributes:
+        min_depth_mm: nearer depths are invalid.
+        max_depth_mm: farther depths are invalid; also the normaliser of depth inside the solver
+            (paper, Sec. 2.1) and of the weight networks' depth inputs.
+        min_disparity_px: smaller disparities are invalid.
+        source: ``stereo`` (depth from the stereo parallax flow) or ``groundtruth`` (the synthetic
+            generator's exact depth: the error budget's switch).
+    """
+
+    min_depth_mm: float = 20.0
+    max_depth_mm: float = 250.0
+    min_disparity_px: float = 0.5
+    source: str = "stereo"
+
+
+@dataclass
+class SolverConfig:
+    """The non-linear least-squares pose solver (paper eq. 6).
+
+    Attributes:
+        method: ``lm`` (Levenberg-Marquardt with analytic Jacobians), ``gauss_newton`` or
+            ``lbfgs`` (as in the paper, autograd gradients).
+        max_iters: iteration cap.
+        step_tol: stop when the update's norm (normalised units / radians) falls below this.
+        lbfgs_max_iters: iteration cap of L-BFGS.
+        max_translation_mm: a relative motion larger than this is a failure.
+        max_rotation_deg: a relative rotation larger than this is a failure.
+        min_valid_pixels: fewer pixels with non-zero weight is a failure.
+        init: ``identity`` or ``constant_velocity`` (start from the previous relative motion).
+    """
+
+    method: str = "lm"
+    max_iters: int = 30
+    step_tol: float = 1e-8
+    lbfgs_max_iters: int = 100
+    max_translation_mm: float = 20.0
+    max_rotation_deg: float = 15.0
+    min_valid_pixels: int = 200
+    init: str = "identity"
+
+
+@dataclass
+class WeightsConfig:
+    """Per-pixel residual weights (paper eqs. 4-5).
+
+    Attributes:
+        mode: ``learned`` (weight networks from ``checkpoint``) or ``constant`` (``w2d``, ``w3d``).
+        residuals: ``2d3d`` | ``2d`` | ``3d`` (ablation: the other weight is zero).
+        w2d, w3d: the constant weights; their defaults come from the sweep in
+            ``tools/sweep_constant_weights.py`` (README, "Constant weights").
+        checkpoint: weight-network checkpoint; empty = the packaged one for ``residuals``.
+        downscale: the networks run at 1/downscale of the image size (the authors use 8).
+    """
+
+    mode: str = "learned"
+    residuals: str = "2d3d"
+    w2d: float = 1.0
+    w3d: float = 1.0
+    checkpoint: str = ""
+    downscale: int = 8

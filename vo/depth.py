@@ -1,0 +1,63 @@
+"""Depth from stereo parallax flow, and the correspondence checks that mark pixels invalid."""
+from __future__ import annotations
+
+import torch
+
+from vo.config import DepthConfig
+from vo.geometry import sample_by_flow
+
+
+def depth_from_parallax(parallax: torch.Tensor, fx_baseline: float, config: DepthConfig,
+                        mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth of the left view from the stereo parallax flow (left -> right).
+
+    Args:
+        parallax: ``(B, 2, H, W)`` flow from the left to the right rectified view; disparity ``d = -F'_x``.
+        fx_baseline: ``fx * baseline`` (pixel * mm): ``depth = fx_baseline / d``.
+        config: validity range.
+        mask: ``(B, 1, H, W)`` bool valid pixels (instrument/specular excluded) or None.
+
+    Returns:
+        depth ``(B, 1, H, W)`` mm (0 where invalid) and valid ``(B, 1, H, W)`` bool. Invalid:
+        disparity below ``min_disparity_px``, depth outside ``[min_depth_mm, max_depth_mm]``, masked.
+    """
+    disparity = -parallax[:, 0:1]
+    valid = disparity > config.min_disparity_px
+    depth = fx_baseline / disparity.clamp(min=1e-6)
+    valid = valid & (depth >= config.min_depth_mm) & (depth <= config.max_depth_mm)
+    if mask is not None:
+        valid = valid & mask
+    return torch.where(valid, depth, torch.zeros_like(depth)), valid
+
+
+def parallax_from_depth(depth: torch.Tensor, fx_baseline: float) -> torch.Tensor:
+    """Synthesise the stereo parallax flow of a view from its depth (rendered model views).
+
+    Args:
+        depth: ``(B, 1, H, W)`` mm, 0 where unknown.
+
+    Returns:
+        ``(B, 2, H, W)`` with ``x = -fx_baseline / depth`` (0 where unknown) and ``y = 0``.
+    """
+    px = torch.where(depth > 0, -fx_baseline / depth.clamp(min=1e-6), torch.zeros_like(depth))
+    return torch.cat([px, torch.zeros_like(px)], 1)
+
+
+def flow_consistency(forward: torch.Tensor, backward: torch.Tensor, threshold_px: float) -> torch.Tensor:
+    """Forward-backward (or left-right) consistency check.
+
+    Args:
+        forward: ``(B, 2, H, W)`` flow from view a to view b.
+        backward: ``(B, 2, H, W)`` flow from view b to view a.
+        threshold_px: largest tolerated round-trip error.
+
+    Returns:
+        ``(B, 1, H, W)`` bool: ``|F_ab(x) + F_ba(x + F_ab(x))| < threshold``.
+    """
+    round_trip = forward + sample_by_flow(backward, forward)
+    return round_trip.norm(dim=1, keepdim=True) < threshold_px
+
+
+def vertical_parallax_ok(parallax: torch.Tensor, max_px: float) -> torch.Tensor:
+    """``(B, 1, H, W)`` bool: the vertical stereo parallax is at most ``max_px`` (rectified views have none)."""
+    return parallax[:, 1:2].abs() <= max_px

@@ -1,0 +1,85 @@
+"""Pinhole geometry on dense maps: back-projection, projection, bilinear sampling by flow."""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def pixel_grid(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """``(1, 2, H, W)`` pixel coordinates (x, y) of every pixel centre."""
+    ys, xs = torch.meshgrid(
+        torch.arange(height, device=device, dtype=dtype),
+        torch.arange(width, device=device, dtype=dtype),
+        indexing="ij",
+    )
+    return torch.stack([xs, ys], 0)[None]
+
+
+def backproject(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Depth map to a point map in the camera frame.
+
+    Args:
+        depth: ``(B, 1, H, W)`` depth (z), any unit.
+        K: ``(B, 3, 3)`` or ``(3, 3)`` intrinsics (pixels).
+
+    Returns:
+        ``(B, 3, H, W)`` points (x, y, z) in the unit of ``depth``.
+    """
+    B, _, H, W = depth.shape
+    K = K.expand(B, 3, 3) if K.dim() == 3 else K[None].expand(B, 3, 3)
+    grid = pixel_grid(H, W, depth.device, depth.dtype)
+    fx, fy = K[:, 0, 0].view(B, 1, 1, 1), K[:, 1, 1].view(B, 1, 1, 1)
+    cx, cy = K[:, 0, 2].view(B, 1, 1, 1), K[:, 1, 2].view(B, 1, 1, 1)
+    x = (grid[:, 0:1] - cx) / fx * depth
+    y = (grid[:, 1:2] - cy) / fy * depth
+    return torch.cat([x, y, depth], 1)
+
+
+def project(points: torch.Tensor, K: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """Point map to pixel coordinates.
+
+    Args:
+        points: ``(B, 3, ...)`` points in the camera frame.
+        K: ``(B, 3, 3)`` or ``(3, 3)``.
+
+    Returns:
+        ``(B, 2, ...)`` pixel coordinates (x, y).
+    """
+    B = points.shape[0]
+    K = K.expand(B, 3, 3) if K.dim() == 3 else K[None].expand(B, 3, 3)
+    view = (B,) + (1,) * (points.dim() - 2)
+    z = points[:, 2:3].clamp(min=eps)
+    u = K[:, 0, 0].view(view) * points[:, 0:1] / z + K[:, 0, 2].view(view)
+    v = K[:, 1, 1].view(view) * points[:, 1:2] / z + K[:, 1, 2].view(view)
+    return torch.cat([u, v], 1)
+
+
+def sample_by_flow(image: torch.Tensor, flow: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
+    """Sample ``image`` at ``x + flow(x)`` (bilinear, zero outside).
+
+    Args:
+        image: ``(B, C, H, W)`` map in the target view.
+        flow: ``(B, 2, H, W)`` displacements (pixels) from the source grid into ``image``.
+
+    Returns:
+        ``(B, C, H, W)`` sampled values on the source grid.
+    """
+    B, _, H, W = flow.shape
+    coords = pixel_grid(H, W, flow.device, flow.dtype) + flow
+    gx = 2.0 * coords[:, 0] / max(W - 1, 1) - 1.0
+    gy = 2.0 * coords[:, 1] / max(H - 1, 1) - 1.0
+    grid = torch.stack([gx, gy], -1)
+    return F.grid_sample(image, grid, mode=mode, padding_mode="zeros", align_corners=True)
+
+
+def sample_valid_by_flow(valid: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+    """Where bilinear sampling by ``flow`` draws only on valid pixels inside the image.
+
+    Args:
+        valid: ``(B, 1, H, W)`` bool validity of the target view.
+        flow: ``(B, 2, H, W)``.
+
+    Returns:
+        ``(B, 1, H, W)`` bool.
+    """
+    return sample_by_flow(valid.to(flow.dtype), flow) > 0.999

@@ -1,0 +1,293 @@
+"""Stereo visual odometry: a stereo pair in, the relative pose to a reference view out.
+
+``StereoOdometry.make_view`` turns a rectified stereo pair into a ``View`` (image, depth from the
+stereo parallax flow, validity, parallax). ``track`` estimates the pose of a current view relative
+to a reference view (the previous frame in frame2frame, a rendered model view in frame2model):
+temporal flow, residuals, weight maps, NLLS. ``register`` is the frame2frame loop in one call.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from vo.camera import StereoCamera
+from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
+from vo.correspondence import make_flow_estimators
+from vo.correspondence.dis import DisFlow, to_gray_u8
+from vo.depth import depth_from_parallax, flow_consistency, parallax_from_depth, vertical_parallax_ok
+from vo.geometry import backproject, pixel_grid, sample_by_flow, sample_valid_by_flow
+from vo.lie import rotation_angle_deg
+from vo.residuals import PoseProblem
+from vo.solver import solve_pose
+from vo.weights import WeightInputs, WeightNetworks, constant_weights, load_weight_networks
+
+
+@dataclass
+class VOConfig:
+    """The VO core's configuration, one section per concern."""
+
+    correspondence: CorrespondenceConfig = field(default_factory=CorrespondenceConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    weights: WeightsConfig = field(default_factory=WeightsConfig)
+
+
+@dataclass
+class View:
+    """One view as the VO core uses it (batch of 1).
+
+    Attributes:
+        image: ``(1, 3, H, W)`` float32 RGB in [0, 1].
+        gray: ``(H, W)`` uint8 grey image (for the classical flow backend).
+        depth: ``(1, 1, H, W)`` depth in mm, 0 where invalid.
+        valid: ``(1, 1, H, W)`` bool pixels with a valid depth and not masked.
+        parallax: ``(1, 2, H, W)`` stereo parallax flow left -> right (pixels).
+    """
+
+    image: torch.Tensor
+    gray: np.ndarray
+    depth: torch.Tensor
+    valid: torch.Tensor
+    parallax: torch.Tensor
+
+
+@dataclass
+class TrackResult:
+    """The outcome of tracking one view against a reference.
+
+    Attributes:
+        relative: ``(4, 4)`` float64 transform current camera -> reference camera, mm; identity
+            when the frame failed.
+        failed: the pose could not be trusted (see ``reason``).
+        reason: why it failed ('' otherwise).
+        iterations, cost: solver figures.
+        valid_pixels: pixels with a non-zero weight.
+        flow: ``(1, 2, H, W)`` temporal flow current -> reference.
+        w2d, w3d: ``(1, 1, H, W)`` weight maps used.
+        timings_ms: per-stage wall time.
+    """
+
+    relative: np.ndarray
+    failed: bool
+    reason: str
+    iterations: int
+    cost: float
+    valid_pixels: int
+    flow: torch.Tensor
+    w2d: torch.Tensor
+    w3d: torch.Tensor
+    timings_ms: dict
+
+
+def image_tensor(rgb: np.ndarray, device: str | torch.device = "cpu") -> torch.Tensor:
+    """``(H, W, 3)`` uint8 RGB -> ``(1, 3, H, W)`` float32 in [0, 1]."""
+    return torch.from_numpy(np.ascontiguousarray(rgb)).to(device).permute(2, 0, 1)[None].float().div_(255.0)
+
+
+class StereoOdometry:
+    """The paper's VO: learned (or constant) per-pixel weights on 2D and 3D geometric residuals.
+
+    Args:
+        camera: the rectified stereo camera (all views share it).
+        config: VO configuration.
+        device: torch device.
+        weight_networks: networks to use in ``learned`` mode (loaded from the config's checkpoint
+            when None).
+    """
+
+    def __init__(self, camera: StereoCamera, config: VOConfig, device: str = "cpu",
+                 weight_networks: WeightNetworks | None = None):
+        self.camera = camera
+        self.config = config
+        self.device = torch.device(device)
+        self.K = camera.K_tensor(self.device)
+        self.temporal_flow, self.stereo_flow = make_flow_estimators(config.correspondence, device)
+        self.weight_networks = None
+        self.weight_meta: dict = {}
+        if config.weights.mode == "learned":
+            if weight_networks is None:
+                weight_networks, self.weight_meta = load_weight_networks(config.weights.checkpoint, config.weights.residuals, device)
+            self.weight_networks = weight_networks.to(self.device).eval()
+        elif config.weights.mode != "constant":
+            raise ValueError(f"unknown weights.mode '{config.weights.mode}' (learned, constant)")
+        self.reference: View | None = None
+        self.pose = np.eye(4)  # T_wc of the rectified left camera, mm
+        self.previous_relative = np.eye(4)
+
+    # ---------------------------------------------------------------- views
+    def _flow(self, estimator, a_img: torch.Tensor, a_gray: np.ndarray, b_img: torch.Tensor, b_gray: np.ndarray) -> torch.Tensor:
+        if isinstance(estimator, DisFlow):
+            f = estimator.flow_gray(a_gray, b_gray)
+            return torch.from_numpy(f).permute(2, 0, 1)[None].to(self.device)
+        return estimator.flow(a_img, b_img)
+
+    def make_view(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None = None,
+                  gt_depth: np.ndarray | None = None, timings: dict | None = None) -> View:
+        """A view from a rectified stereo pair.
+
+        Args:
+            left, right: ``(H, W, 3)`` uint8 RGB.
+            mask: ``(H, W)`` bool valid tissue pixels, or None.
+            gt_depth: ``(H, W)`` float depth in mm to use instead of stereo depth (error budget).
+        """
+        t0 = time.perf_counter()
+        img_l = image_tensor(left, self.device)
+        gray_l = to_gray_u8(img_l[0])
+        valid_mask = None if mask is None else torch.from_numpy(np.ascontiguousarray(mask)).to(self.device)[None, None]
+        fxb = self.camera.depth_from_disparity_scale()
+        dcfg = self.config.depth
+        if gt_depth is not None:
+            depth = torch.from_numpy(np.ascontiguousarray(gt_depth, dtype=np.float32)).to(self.device)[None, None]
+            valid = (depth >= dcfg.min_depth_mm) & (depth <= dcfg.max_depth_mm)
+            if valid_mask is not None:
+                valid &= valid_mask
+            depth = torch.where(valid, depth, torch.zeros_like(depth))
+            parallax = parallax_from_depth(depth, fxb)
+        else:
+            img_r = image_tensor(right, self.device)
+            gray_r = to_gray_u8(img_r[0])
+            parallax = self._flow(self.stereo_flow, img_l, gray_l, img_r, gray_r)
+            depth, valid = depth_from_parallax(parallax, fxb, dcfg, valid_mask)
+            ccfg = self.config.correspondence
+            if ccfg.max_vertical_parallax_px > 0:
+                valid &= vertical_parallax_ok(parallax, ccfg.max_vertical_parallax_px)
+            if ccfg.lr_check_px > 0:
+                back = self._flow(self.stereo_flow, img_r, gray_r, img_l, gray_l)
+                valid &= flow_consistency(parallax, back, ccfg.lr_check_px)
+            depth = torch.where(valid, depth, torch.zeros_like(depth))
+        if timings is not None:
+            timings["stereo"] = (time.perf_counter() - t0) * 1000.0
+        return View(image=img_l, gray=gray_l, depth=depth, valid=valid, parallax=parallax)
+
+    def view_from_render(self, color: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor) -> View:
+        """A reference view from a rendered model view.
+
+        Args:
+            color: ``(3, H, W)`` RGB in [0, 1]; depth: ``(H, W)`` mm; valid: ``(H, W)`` bool.
+        """
+        dcfg = self.config.depth
+        depth = depth[None, None].to(self.device).float()
+        valid = valid[None, None].to(self.device) & (depth >= dcfg.min_depth_mm) & (depth <= dcfg.max_depth_mm)
+        depth = torch.where(valid, depth, torch.zeros_like(depth))
+        image = color[None].to(self.device).float().clamp(0, 1)
+        return View(image=image, gray=to_gray_u8(image[0]), depth=depth, valid=valid,
+                    parallax=parallax_from_depth(depth, self.camera.depth_from_disparity_scale()))
+
+    # ---------------------------------------------------------------- tracking
+    def _weights(self, cur: View, ref: View, flow: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        wcfg = self.config.weights
+        if self.weight_networks is None:
+            return constant_weights(valid, wcfg.w2d, wcfg.w3d, wcfg.residuals)
+        dmax = self.config.depth.max_depth_mm
+        inp = WeightInputs(image_cur=cur.image, depth_cur=cur.depth / dmax, flow=flow, parallax_cur=cur.parallax,
+                           image_ref=ref.image, depth_ref=ref.depth / dmax, parallax_ref=ref.parallax, valid=valid)
+        with torch.inference_mode():
+            return self.weight_networks(inp)
+
+    def build_problem(self, cur: View, ref: View, flow: torch.Tensor, flow_valid: torch.Tensor | None = None):
+        """The pose problem of ``cur`` against ``ref`` given the temporal flow.
+
+        Returns:
+            (problem, valid ``(1, 1, H, W)`` bool, valid3d ``(1, 1, H, W)`` bool)
+        """
+        _, _, H, W = flow.shape
+        dmax = self.config.depth.max_depth_mm
+        target = pixel_grid(H, W, flow.device, flow.dtype) + flow
+        inside = (target[:, 0:1] >= 0) & (target[:, 0:1] <= W - 1) & (target[:, 1:2] >= 0) & (target[:, 1:2] <= H - 1)
+        valid = cur.valid & inside
+        if flow_valid is not None:
+            valid &= flow_valid
+        valid3 = valid & sample_valid_by_flow(ref.valid, flow)
+        points_ref = sample_by_flow(backproject(ref.depth / dmax, self.K), flow)
+        return target, valid, valid3, points_ref
+
+    def track(self, cur: View, ref: View, flow_ref: View | None = None, T_init: np.ndarray | None = None) -> TrackResult:
+        """Estimate the transform from ``cur``'s camera to ``ref``'s camera.
+
+        Args:
+            cur: the current view.
+            ref: the reference view (its depth gives the 3D residual's reference points).
+            flow_ref: the view the temporal flow is computed against (default ``ref``); in
+                frame2model it can be the last real frame, which sits at the reference pose.
+            T_init: ``(4, 4)`` mm initial guess (identity when None).
+        """
+        timings: dict = {}
+        flow_ref = flow_ref or ref
+        t0 = time.perf_counter()
+        flow = self._flow(self.temporal_flow, cur.image, cur.gray, flow_ref.image, flow_ref.gray)
+        fb_ok = None
+        if self.config.correspondence.fb_check_px > 0:
+            back = self._flow(self.temporal_flow, flow_ref.image, flow_ref.gray, cur.image, cur.gray)
+            fb_ok = flow_consistency(flow, back, self.config.correspondence.fb_check_px)
+        t1 = time.perf_counter()
+        target, valid, valid3, points_ref = self.build_problem(cur, ref, flow, fb_ok)
+        w2d, w3d = self._weights(cur, ref, flow, valid)
+        w3d = w3d * valid3
+        t2 = time.perf_counter()
+        dmax = self.config.depth.max_depth_mm
+        s2, s3 = PoseProblem.scales(*flow.shape[-2:])
+        prob = PoseProblem(
+            points_cur=backproject(cur.depth / dmax, self.K).flatten(2),
+            target_px=target.flatten(2),
+            points_ref=points_ref.flatten(2),
+            w2d=w2d.flatten(1), w3d=w3d.flatten(1), K=self.K[None], s2=s2, s3=s3,
+        ).compact()
+        n_valid = int(prob.w2d.shape[1])
+        scfg = self.config.solver
+        init = None
+        if T_init is not None:
+            Ti = torch.as_tensor(T_init, dtype=torch.float32, device=self.device).clone()
+            Ti[:3, 3] /= dmax
+            init = Ti[None]
+        failed, reason = False, ""
+        result = None
+        if n_valid < scfg.min_valid_pixels:
+            failed, reason = True, f"only {n_valid} valid pixels"
+        else:
+            result = solve_pose(prob, scfg, init)
+        t3 = time.perf_counter()
+        relative = np.eye(4)
+        if result is not None:
+            T = result.T[0].double().cpu()
+            if not bool(torch.isfinite(T).all()):
+                failed, reason = True, "non-finite pose"
+            else:
+                trans_mm = float(T[:3, 3].norm()) * dmax
+                rot_deg = float(rotation_angle_deg(T[None])[0])
+                if trans_mm > scfg.max_translation_mm:
+                    failed, reason = True, f"implausible motion {trans_mm:.1f} mm"
+                elif rot_deg > scfg.max_rotation_deg:
+                    failed, reason = True, f"implausible rotation {rot_deg:.1f} deg"
+                else:
+                    relative = T.numpy().copy()
+                    relative[:3, 3] *= dmax
+        timings.update(flow=(t1 - t0) * 1000.0, weights=(t2 - t1) * 1000.0, solve=(t3 - t2) * 1000.0)
+        return TrackResult(relative=relative, failed=failed, reason=reason,
+                           iterations=0 if result is None else result.iterations,
+                           cost=float("nan") if result is None else float(result.cost[0]),
+                           valid_pixels=n_valid, flow=flow, w2d=w2d, w3d=w3d, timings_ms=timings)
+
+    # ---------------------------------------------------------------- frame2frame
+    def register(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None = None,
+                 gt_depth: np.ndarray | None = None) -> TrackResult | None:
+        """Frame-to-frame odometry step: track the new pair against the previous one and chain.
+
+        Returns None for the first frame (it becomes the reference). On failure the pose and the
+        reference are kept (the next frame is tracked against the last good one).
+        """
+        timings: dict = {}
+        view = self.make_view(left, right, mask, gt_depth, timings)
+        if self.reference is None:
+            self.reference = view
+            return None
+        T_init = self.previous_relative if self.config.solver.init == "constant_velocity" else None
+        result = self.track(view, self.reference, T_init=T_init)
+        result.timings_ms = {**timings, **result.timings_ms}
+        if not result.failed:
+            self.pose = self.pose @ result.relative
+            self.previous_relative = result.relative
+            self.reference = view
+        return result

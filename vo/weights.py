@@ -1,0 +1,193 @@
+"""The weight maps w2D and w3D (paper eqs. 4-5): two small UNets with sigmoid outputs, run at a
+reduced resolution and upsampled, and the constant alternative.
+
+Inputs of the networks (all at 1/``downscale`` of the image, area-averaged):
+- w2D: pixel coordinates (2, in [-1, 1]), current image I_t (3), current depth D_t / D_max (1),
+  temporal flow F_t (2), stereo parallax flow F'_t (2), valid mask (1): 11 channels.
+- w3D: the same 11, plus the reference image I_ref (3), its depth D_ref / D_max (1) and its parallax
+  flow F'_ref (2): 17 channels. The reference inputs are warped by the flow onto the current pixel
+  grid (the paper feeds them unwarped; aligned inputs let a small network compare the two views
+  pixel by pixel, which is how it can see deforming tissue).
+Flows are scaled by ``20 / W`` (a flow of 5 % of the width is 1); the vertical parallax by ``W0 / (2 W)``
+with ``W0 = 640`` (2 px at the paper's resolution is 1).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from vo.geometry import sample_by_flow
+
+IN_CHANNELS_2D = 11
+IN_CHANNELS_3D = 17
+CHECKPOINT_DIR = Path(__file__).parent / "checkpoints"
+
+
+@dataclass
+class WeightInputs:
+    """Full-resolution inputs of the weight networks (batch ``B``).
+
+    Attributes:
+        image_cur, image_ref: ``(B, 3, H, W)`` RGB in [0, 1].
+        depth_cur, depth_ref: ``(B, 1, H, W)`` normalised depth (0 where invalid).
+        flow: ``(B, 2, H, W)`` temporal flow current -> reference (pixels).
+        parallax_cur, parallax_ref: ``(B, 2, H, W)`` stereo parallax flows (pixels).
+        valid: ``(B, 1, H, W)`` bool pixels that enter the objective.
+    """
+
+    image_cur: torch.Tensor
+    depth_cur: torch.Tensor
+    flow: torch.Tensor
+    parallax_cur: torch.Tensor
+    image_ref: torch.Tensor
+    depth_ref: torch.Tensor
+    parallax_ref: torch.Tensor
+    valid: torch.Tensor
+
+
+def _scale_flow(flow: torch.Tensor, width: int) -> torch.Tensor:
+    return flow * (20.0 / width)
+
+
+def _scale_parallax(parallax: torch.Tensor, width: int) -> torch.Tensor:
+    return torch.cat([parallax[:, 0:1] * (20.0 / width), parallax[:, 1:2] * (640.0 / (2.0 * width))], 1)
+
+
+def _downsample(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    return F.adaptive_avg_pool2d(x, size) if x.shape[-2:] != size else x
+
+
+def network_inputs(inp: WeightInputs, downscale: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Assemble the inputs at reduced resolution (everything is area-averaged first, then the
+    reference maps are warped by the downsampled flow, which keeps this step cheap).
+
+    Returns:
+        ``x2d`` ``(B, 11, h, w)`` and ``x3d`` ``(B, 17, h, w)`` with ``h = ceil(H / downscale)``.
+    """
+    B, _, H, W = inp.image_cur.shape
+    h, w = -(-H // downscale), -(-W // downscale)
+    dtype, device = inp.flow.dtype, inp.flow.device
+    ys, xs = torch.meshgrid(torch.linspace(-1, 1, h, device=device, dtype=dtype),
+                            torch.linspace(-1, 1, w, device=device, dtype=dtype), indexing="ij")
+    coords = torch.stack([xs, ys])[None].expand(B, 2, h, w)
+    flow = _downsample(inp.flow, (h, w))
+    cur = _downsample(torch.cat([inp.image_cur, inp.depth_cur, _scale_flow(inp.flow, W),
+                                 _scale_parallax(inp.parallax_cur, W), inp.valid.to(dtype)], 1), (h, w))
+    ref = _downsample(torch.cat([inp.image_ref, inp.depth_ref, _scale_parallax(inp.parallax_ref, W)], 1), (h, w))
+    flow_low = torch.stack([flow[:, 0] * (w / W), flow[:, 1] * (h / H)], 1)
+    ref_warped = sample_by_flow(ref, flow_low)
+    x3 = torch.cat([coords, cur, ref_warped], 1)
+    return x3[:, :IN_CHANNELS_2D], x3
+
+
+class _Block(nn.Sequential):
+    def __init__(self, cin: int, cout: int):
+        super().__init__(
+            nn.Conv2d(cin, cout, 3, padding=1), nn.GroupNorm(4, cout), nn.LeakyReLU(0.1, inplace=True),
+            nn.Conv2d(cout, cout, 3, padding=1), nn.GroupNorm(4, cout), nn.LeakyReLU(0.1, inplace=True),
+        )
+
+
+class WeightUNet(nn.Module):
+    """A 3-level encoder-decoder with skip connections and a sigmoid output.
+
+    Input ``(B, C, h, w)`` -> output ``(B, 1, h, w)`` in (0, 1). Any ``h, w`` (padded internally).
+    """
+
+    def __init__(self, in_channels: int, base: int = 16):
+        super().__init__()
+        self.enc1 = _Block(in_channels, base)
+        self.enc2 = _Block(base, 2 * base)
+        self.bottom = _Block(2 * base, 4 * base)
+        self.dec2 = _Block(4 * base + 2 * base, 2 * base)
+        self.dec1 = _Block(2 * base + base, base)
+        self.head = nn.Conv2d(base, 1, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h, w = x.shape[-2:]
+        ph, pw = (-h) % 4, (-w) % 4
+        x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+        e1 = self.enc1(x)
+        e2 = self.enc2(F.max_pool2d(e1, 2))
+        b = self.bottom(F.max_pool2d(e2, 2))
+        d2 = self.dec2(torch.cat([F.interpolate(b, scale_factor=2.0, mode="bilinear", align_corners=False), e2], 1))
+        d1 = self.dec1(torch.cat([F.interpolate(d2, scale_factor=2.0, mode="bilinear", align_corners=False), e1], 1))
+        return torch.sigmoid(self.head(d1))[..., :h, :w]
+
+
+class WeightNetworks(nn.Module):
+    """The pair of weight networks ``g(.; theta_2D)`` and ``g(.; theta_3D)``.
+
+    Args:
+        downscale: the networks run at 1/downscale resolution; outputs are bilinearly upsampled.
+        residuals: ``2d3d`` | ``2d`` | ``3d`` (the unused map is zero).
+    """
+
+    def __init__(self, downscale: int = 8, residuals: str = "2d3d", base: int = 16):
+        super().__init__()
+        self.downscale = downscale
+        self.residuals = residuals
+        self.net2d = WeightUNet(IN_CHANNELS_2D, base)
+        self.net3d = WeightUNet(IN_CHANNELS_3D, base)
+
+    def forward(self, inp: WeightInputs) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(w2d, w3d)``, each ``(B, 1, H, W)`` in [0, 1], zero on invalid pixels."""
+        H, W = inp.image_cur.shape[-2:]
+        x2, x3 = network_inputs(inp, self.downscale)
+        valid = inp.valid.to(inp.flow.dtype)
+        zero = torch.zeros_like(valid)
+
+        def run(net: nn.Module, x: torch.Tensor) -> torch.Tensor:
+            w = net(x)
+            if w.shape[-2:] != (H, W):
+                w = F.interpolate(w, size=(H, W), mode="bilinear", align_corners=False)
+            return w * valid
+
+        w2 = run(self.net2d, x2) if self.residuals in ("2d3d", "2d") else zero
+        w3 = run(self.net3d, x3) if self.residuals in ("2d3d", "3d") else zero
+        return w2, w3
+
+
+def constant_weights(valid: torch.Tensor, w2d: float, w3d: float, residuals: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Constant weight maps ``(B, 1, H, W)`` for the valid pixels; the ablation mode zeroes one."""
+    v = valid.float()
+    w2 = v * (w2d if residuals in ("2d3d", "2d") else 0.0)
+    w3 = v * (w3d if residuals in ("2d3d", "3d") else 0.0)
+    return w2, w3
+
+
+def default_checkpoint(residuals: str) -> Path:
+    """The packaged checkpoint for a residual mode."""
+    return CHECKPOINT_DIR / f"weights_{residuals}.pt"
+
+
+class MissingWeightsError(ValueError):
+    """``weights.mode: learned`` without a usable checkpoint."""
+
+
+def load_weight_networks(path: str | Path | None, residuals: str, device: str = "cpu") -> tuple[WeightNetworks, dict]:
+    """Load weight networks from a checkpoint written by ``slam train``.
+
+    Args:
+        path: checkpoint file; None/empty = the packaged one for ``residuals``.
+
+    Returns:
+        the networks in eval mode and the checkpoint's metadata (training config, image size,
+        correspondence backend, maximum depth).
+    """
+    path = Path(path) if path else default_checkpoint(residuals)
+    if not path.is_file():
+        raise MissingWeightsError(
+            f"{path}: weight-network checkpoint not found (train one with `slam train`, or run with --weights constant)"
+        )
+    ckpt = torch.load(path, map_location=device, weights_only=False)
+    meta = ckpt.get("meta", {})
+    nets = WeightNetworks(downscale=int(meta.get("downscale", 8)), residuals=meta.get("residuals", residuals),
+                          base=int(meta.get("base", 16)))
+    nets.load_state_dict(ckpt["state_dict"])
+    nets.residuals = residuals
+    return nets.to(device).eval(), meta
