@@ -1,0 +1,167 @@
+"""The ``slam`` command: a thin layer over the library.
+
+    slam run DATA [--mode frame2frame|frame2model] [--config FILE] [--out DIR] [--frames A:B:S | N]
+                  [--weights learned|constant] [--residuals 2d3d|2d|3d] [--rerun FILE.rrd | --spawn]
+                  [--export-map] [--mesh] [--set key=value ...]
+    slam compare DATA [--out DIR]
+    slam eval GT.txt EST.txt
+    slam synth OUT --scenario S [--frames N] [--size WxH] [--seed S] [--raw]
+    slam train --config configs/train.yaml [--out DIR]
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from slam.errors import SlamError
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("data", help="sequence folder (StereoMIS, StereoMIS raw, SCARED keyframe or plain layout)")
+    p.add_argument("--config", help="YAML config (defaults: configs/default.yaml values built in)")
+    p.add_argument("--out", help="output folder (default runs/<sequence>_<mode>)")
+    p.add_argument("--frames", help="frame selection: N (first N) or A:B:S")
+    p.add_argument("--weights", choices=["learned", "constant"], help="learned weight maps or constant weights")
+    p.add_argument("--residuals", choices=["2d3d", "2d", "3d"], help="residuals used (ablation)")
+    p.add_argument("--rerun", metavar="FILE.rrd", help="save a rerun recording")
+    p.add_argument("--spawn", action="store_true", help="open the rerun viewer")
+    p.add_argument("--export-map", action="store_true", help="write map.ply in frame2frame too")
+    p.add_argument("--mesh", action="store_true", help="also write a surface mesh of the map")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config value (repeatable)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="slam",
+        description="Robust stereo-endoscopy SLAM: dense VO with learned 2D/3D residual weights "
+                    "(Hayoz et al. 2023) and a surfel map (frame2model).",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = sub.add_parser("run", help="track a sequence and write trajectory, metrics, plot and map",
+                         description="Track a stereo sequence. Writes trajectory.txt (TUM), metrics.json, "
+                                     "trajectory.png, config.yaml, map.ply (frame2model or --export-map).")
+    _add_run_options(run)
+    run.add_argument("--mode", choices=["frame2frame", "frame2model"], help="tracking mode (default frame2frame)")
+
+    cmp_ = sub.add_parser("compare", help="run frame2frame and frame2model on one sequence; table + plot",
+                          description="Run both tracking modes on a sequence; print and write a table and one plot.")
+    _add_run_options(cmp_)
+
+    ev = sub.add_parser("eval", help="ATE-RMSE and RPE of a trajectory against ground truth",
+                        description="ATE-RMSE after SE(3) alignment (first-pose alignment on static sequences), "
+                                    "RPE-trans and RPE-rot between consecutive frames. TUM files in metres.")
+    ev.add_argument("gt", help="ground-truth TUM file")
+    ev.add_argument("est", help="estimated TUM file")
+    ev.add_argument("--plot", help="also write a trajectory plot (PNG)")
+    ev.add_argument("--json", help="also write the metrics as JSON")
+
+    sy = sub.add_parser("synth", help="generate a synthetic stereo-endoscopy sequence with ground truth",
+                        description="Render a synthetic stereo-endoscopy sequence (StereoMIS layout, or StereoMIS raw with --raw).")
+    sy.add_argument("out", help="output folder")
+    sy.add_argument("--scenario", required=True, choices=["rigid", "breathing", "scanning", "deforming", "loop"])
+    sy.add_argument("--frames", type=int, default=150, help="frames to render (default 150)")
+    sy.add_argument("--size", default="640x512", help="WxH (default 640x512)")
+    sy.add_argument("--seed", type=int, default=0)
+    sy.add_argument("--raw", action="store_true", help="unrectified pair with lens distortion as one mp4 (StereoMIS raw layout)")
+
+    tr = sub.add_parser("train", help="train the weight networks end to end through the pose optimum (DDN)",
+                        description="Train the weight networks on sequences with ground truth (configs/train.yaml).")
+    tr.add_argument("--config", required=True, help="training config YAML")
+    tr.add_argument("--out", help="output folder for checkpoints")
+    tr.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    return parser
+
+
+def _resolved_config(args) -> "SlamConfig":  # noqa: F821
+    from slam.config import load_config
+
+    overrides = list(args.set)
+    if getattr(args, "mode", None):
+        overrides.append(f"tracking.mode={args.mode}")
+    if args.weights:
+        overrides.append(f"weights.mode={args.weights}")
+    if args.residuals:
+        overrides.append(f"weights.residuals={args.residuals}")
+    if args.rerun:
+        overrides.append(f"logging.rerun={args.rerun}")
+    if args.spawn:
+        overrides.append("logging.spawn=true")
+    if args.export_map:
+        overrides.append("tracking.export_map=true")
+    if args.mesh:
+        overrides.append("logging.mesh=true")
+    if args.quiet:
+        overrides.append("logging.progress=false")
+    return load_config(args.config, overrides)
+
+
+def cmd_run(args) -> int:
+    from slam.runner import run_from_config
+
+    config = _resolved_config(args)
+    result = run_from_config(args.data, config, args.out, args.frames)
+    return 130 if result.interrupted else 0
+
+
+def cmd_compare(args) -> int:
+    from slam.compare import compare
+
+    config = _resolved_config(args)
+    compare(args.data, config, args.out, args.frames)
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from slam.evaluation import main_eval
+
+    return main_eval(args.gt, args.est, plot_path=args.plot, json_path=args.json)
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise SlamError(f"--size {text}: expected WxH, e.g. 640x512") from None
+    if w < 16 or h < 16:
+        raise SlamError(f"--size {text}: too small")
+    return w, h
+
+
+def cmd_synth(args) -> int:
+    from slam.synth import generate
+
+    out = generate(args.out, args.scenario, frames=args.frames, size=parse_size(args.size), seed=args.seed,
+                   raw=args.raw, progress=True)
+    print(f"wrote {args.frames} frames ({args.scenario}, seed {args.seed}) to {out}")
+    return 0
+
+
+def cmd_train(args) -> int:
+    from slam.training import train_from_config
+
+    train_from_config(args.config, args.out, args.set)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    handlers = {"run": cmd_run, "compare": cmd_compare, "eval": cmd_eval, "synth": cmd_synth, "train": cmd_train}
+    try:
+        return handlers[args.command](args)
+    except SlamError as err:
+        print(f"slam {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except (ValueError, FileNotFoundError) as err:
+        # configuration mistakes surfacing from the library layers (e.g. a missing checkpoint)
+        print(f"slam {args.command}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

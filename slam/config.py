@@ -1,0 +1,230 @@
+"""The application's configuration: typed dataclasses per concern, loaded from YAML, validated,
+overridden with ``--set a.b=value``, and saved with every run.
+
+An unknown or mistyped key is a one-line ``ConfigError`` naming it (with a suggestion).
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from mapping.config import MapConfig
+from slam.datasets.config import DataConfig
+from slam.errors import ConfigError
+from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
+
+
+@dataclass
+class TrackingConfig:
+    """How the pipeline tracks.
+
+    Attributes:
+        mode: ``frame2frame`` (reference = previous frame) or ``frame2model`` (reference = the
+            surfel map rendered at the last pose).
+        flow_reference: in frame2model, the image the temporal flow is computed against:
+            ``last_frame`` (the last real frame, at the reference pose, lit like the current one)
+            or ``rendered`` (the model's colour, as the paper).
+        min_model_coverage: below this fraction of valid rendered pixels the model view is too
+            empty and the previous frame is the reference for that step.
+        fuse_weight: per-pixel fusion weight: ``w3d`` (learned 3D weight, normalised per frame,
+            when available) or ``uniform``.
+        export_map: fuse a map in frame2frame too (without tracking against it) and export it.
+    """
+
+    mode: str = "frame2frame"
+    flow_reference: str = "last_frame"
+    min_model_coverage: float = 0.5
+    fuse_weight: str = "w3d"
+    export_map: bool = False
+
+
+@dataclass
+class LoggingConfig:
+    """Outputs besides the trajectory.
+
+    Attributes:
+        rerun: path of a rerun recording (``.rrd``) to save; empty = none.
+        spawn: open the rerun viewer.
+        map_every: log the map to rerun every N frames (0 = only the final map).
+        progress: show a progress bar.
+        mesh: also write a surface mesh of the map.
+    """
+
+    rerun: str = ""
+    spawn: bool = False
+    map_every: int = 10
+    progress: bool = True
+    mesh: bool = False
+
+
+@dataclass
+class SlamConfig:
+    """Everything a run needs."""
+
+    device: str = "cpu"
+    threads: int = 0
+    data: DataConfig = field(default_factory=DataConfig)
+    correspondence: CorrespondenceConfig = field(default_factory=CorrespondenceConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    weights: WeightsConfig = field(default_factory=WeightsConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
+
+    def vo(self):
+        """The VO core's part of the configuration."""
+        from vo.odometry import VOConfig
+
+        return VOConfig(correspondence=self.correspondence, depth=self.depth, solver=self.solver, weights=self.weights)
+
+
+# Allowed values of string options, checked at load time.
+CHOICES = {
+    "data.layout": ("auto", "stereomis", "stereomis_raw", "scared", "plain"),
+    "data.rectified": ("auto", "yes", "no"),
+    "data.rectify_mode": ("full", "pseudo"),
+    "correspondence.backend": ("dis", "raft"),
+    "correspondence.dis_preset": ("ultrafast", "fast", "medium"),
+    "correspondence.dis_stereo_preset": ("ultrafast", "fast", "medium"),
+    "depth.source": ("stereo", "groundtruth"),
+    "solver.method": ("lm", "gauss_newton", "lbfgs"),
+    "solver.init": ("identity", "constant_velocity"),
+    "weights.mode": ("learned", "constant"),
+    "weights.residuals": ("2d3d", "2d", "3d"),
+    "tracking.mode": ("frame2frame", "frame2model"),
+    "tracking.flow_reference": ("last_frame", "rendered"),
+    "tracking.fuse_weight": ("w3d", "uniform"),
+}
+
+
+def _coerce(value: Any, typ: Any, key: str, source: str) -> Any:
+    """Check/convert ``value`` to the annotated type ``typ``."""
+    origin = typing.get_origin(typ)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(typ) if a is not type(None)]
+        if value is None:
+            return None
+        return _coerce(value, args[0], key, source)
+    if typ is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "yes", "on", "1", "false", "no", "off", "0"):
+            return value.lower() in ("true", "yes", "on", "1")
+        raise ConfigError(f"{source}: '{key}' must be true or false, got {value!r}")
+    if typ is int:
+        if isinstance(value, bool) or not isinstance(value, (int, str)):
+            raise ConfigError(f"{source}: '{key}' must be an integer, got {value!r}")
+        try:
+            return int(value)
+        except ValueError:
+            raise ConfigError(f"{source}: '{key}' must be an integer, got {value!r}") from None
+    if typ is float:
+        if isinstance(value, bool):
+            raise ConfigError(f"{source}: '{key}' must be a number, got {value!r}")
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{source}: '{key}' must be a number, got {value!r}") from None
+    if typ is str:
+        if isinstance(value, (dict, list)):
+            raise ConfigError(f"{source}: '{key}' must be a string, got {value!r}")
+        value = "" if value is None else str(value)
+        if key in CHOICES and value not in CHOICES[key]:
+            raise ConfigError(f"{source}: '{key}' must be one of {', '.join(CHOICES[key])}, got '{value}'")
+        return value
+    if origin in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{source}: '{key}' must be a list, got {value!r}")
+        (inner,) = typing.get_args(typ)[:1] or (Any,)
+        return [(_coerce(v, inner, key, source) if inner is not Any else v) for v in value]
+    return value
+
+
+def _merge(obj: Any, data: dict, prefix: str, source: str) -> None:
+    """Set the fields of dataclass ``obj`` from ``data`` (nested), validating keys and types."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: '{prefix.rstrip('.') or 'top level'}' must be a mapping, got {data!r}")
+    hints = typing.get_type_hints(type(obj))
+    names = [f.name for f in dataclasses.fields(obj)]
+    for key, value in data.items():
+        full = f"{prefix}{key}"
+        if key not in names:
+            close = difflib.get_close_matches(str(key), names, n=1)
+            hint = f" (did you mean '{prefix}{close[0]}'?)" if close else f" (known: {', '.join(names)})"
+            raise ConfigError(f"{source}: unknown key '{full}'{hint}")
+        current = getattr(obj, key)
+        if dataclasses.is_dataclass(current):
+            _merge(current, value, full + ".", source)
+        else:
+            setattr(obj, key, _coerce(value, hints[key], full, source))
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SlamConfig:
+    """Defaults, then the YAML file, then ``key=value`` overrides (values parsed as YAML scalars)."""
+    config = SlamConfig()
+    if path:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"{path}: config file not found")
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as err:
+            line = getattr(getattr(err, "problem_mark", None), "line", None)
+            where = f":{line + 1}" if line is not None else ""
+            raise ConfigError(f"{path}{where}: not valid YAML") from None
+        _merge(config, data, "", str(path))
+    for item in overrides or []:
+        apply_override(config, item)
+    validate(config)
+    return config
+
+
+def apply_override(config: SlamConfig, item: str) -> None:
+    """Apply one ``a.b=value`` override."""
+    if "=" not in item:
+        raise ConfigError(f"--set {item}: expected key=value")
+    key, raw = item.split("=", 1)
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError:
+        value = raw
+    nested: dict = {}
+    cursor = nested
+    parts = key.strip().split(".")
+    for part in parts[:-1]:
+        cursor = cursor.setdefault(part, {})
+    cursor[parts[-1]] = value
+    _merge(config, nested, "", "--set")
+
+
+def validate(config: SlamConfig) -> None:
+    """Range checks that types alone do not catch."""
+    checks = [
+        (config.depth.max_depth_mm > config.depth.min_depth_mm > 0, "depth: need 0 < min_depth_mm < max_depth_mm"),
+        (config.solver.max_iters >= 1, "solver.max_iters must be >= 1"),
+        (config.weights.downscale >= 1, "weights.downscale must be >= 1"),
+        (config.data.width >= 0 and config.data.height >= 0, "data.width/height must be >= 0"),
+        ((config.data.width == 0) == (config.data.height == 0), "data.width and data.height: set both or neither"),
+        (0.0 <= config.tracking.min_model_coverage <= 1.0, "tracking.min_model_coverage must be in [0, 1]"),
+        (config.weights.w2d >= 0 and config.weights.w3d >= 0, "weights.w2d/w3d must be >= 0"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise ConfigError(f"config: {message}")
+
+
+def to_dict(config: Any) -> dict:
+    return dataclasses.asdict(config)
+
+
+def save_config(config: SlamConfig, path: str | Path) -> None:
+    """Write the resolved configuration as YAML."""
+    Path(path).write_text(yaml.safe_dump(to_dict(config), sort_keys=False))

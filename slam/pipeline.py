@@ -1,0 +1,271 @@
+"""The SLAM pipeline: read frames, track (frame2frame | frame2model), fuse, log, write results.
+
+The pipeline owns progress, evaluation and result files; the VO core and the map own none of them.
+Poses: the VO core tracks the *rectified* left camera; rows written are those of the original left
+camera, ``T_wc = T_wc_rect @ [[R1, 0], [0, 1]]`` (ARCHITECTURE.md, Conventions). The world frame is
+the ground truth's when it exists (first estimate = first ground-truth pose), else the first camera's.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+
+from slam.config import SlamConfig, save_config
+from slam.errors import DataError, SlamError
+from slam.tum import TumStreamWriter
+from vo.odometry import StereoOdometry, TrackResult, View
+
+log = logging.getLogger("slam")
+
+
+@dataclass
+class FrameRecord:
+    """What the pipeline keeps of one processed frame (small: no images)."""
+
+    index: int
+    timestamp: float
+    pose: np.ndarray  # T_wc of the original left camera, mm
+    failed: bool
+    reason: str = ""
+    reference: str = ""  # previous_frame | model | first
+    iterations: int = 0
+    cost: float = float("nan")
+
+
+@dataclass
+class RunResult:
+    """The outcome of ``run_sequence``."""
+
+    out_dir: Path
+    records: list = field(default_factory=list)
+    metrics: dict = field(default_factory=dict)
+    interrupted: bool = False
+    map_points: int = 0
+    files: dict = field(default_factory=dict)
+
+
+def _R1_4x4(R1: np.ndarray) -> np.ndarray:
+    M = np.eye(4)
+    M[:3, :3] = R1
+    return M
+
+
+def normalised_fusion_weight(w3d: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Per-frame normalisation of the learned 3D weight for fusion (its scale is not fixed by the
+    optimum): divided by its 95th percentile over valid pixels, clamped to [0, 1].
+
+    Args:
+        w3d: ``(H, W)``; valid: ``(H, W)`` bool.
+    """
+    vals = w3d[valid]
+    if vals.numel() == 0:
+        return torch.zeros_like(w3d)
+    ref = torch.quantile(vals.float()[:: max(1, vals.numel() // 20000)], 0.95).clamp(min=1e-12)
+    return (w3d / ref).clamp(0, 1) * valid
+
+
+class Pipeline:
+    """One run over a dataset.
+
+    Args:
+        config: the resolved configuration.
+        dataset: a ``StereoDataset`` view (frames already selected).
+        out_dir: where results go.
+        logger: a frame logger (``slam.rerun_log.RerunLogger``) or None.
+    """
+
+    def __init__(self, config: SlamConfig, dataset, out_dir: Path, logger=None):
+        self.config = config
+        self.dataset = dataset
+        self.out_dir = Path(out_dir)
+        self.logger = logger
+        self.camera = dataset.camera
+        self.R1 = _R1_4x4(dataset.R1)
+        if config.threads > 0:
+            torch.set_num_threads(config.threads)
+        self.odometry = StereoOdometry(self.camera, config.vo(), device=config.device)
+        mode = config.tracking.mode
+        self.map = None
+        if mode == "frame2model" or config.tracking.export_map:
+            from mapping import SurfelMap
+
+            self.map = SurfelMap(config.map, device=config.device)
+        self.timings: dict[str, list[float]] = {}
+        self.fallbacks = 0
+
+    # --------------------------------------------------------------------------------------
+    def _initial_rect_pose(self) -> np.ndarray:
+        gt = self.dataset.gt_poses
+        T0 = gt[0] if gt is not None else np.eye(4)
+        return T0 @ self.R1.T  # T_wc_rect = T_wc_orig @ R1^T
+
+    def _time(self, stage: str, ms: float) -> None:
+        self.timings.setdefault(stage, []).append(ms)
+
+    def _reference(self, last_view: View, pose_rect: np.ndarray) -> tuple[View, Optional[View], str]:
+        """The reference view for the next frame and the view the flow is computed against."""
+        if self.config.tracking.mode != "frame2model" or self.map is None:
+            return last_view, None, "previous_frame"
+        t0 = time.perf_counter()
+        K = self.odometry.K
+        mv = self.map.render(K, torch.as_tensor(pose_rect, dtype=torch.float32), self.camera.height, self.camera.width)
+        self._time("render", (time.perf_counter() - t0) * 1000.0)
+        coverage = float(mv.valid.float().mean())
+        if coverage < self.config.tracking.min_model_coverage:
+            self.fallbacks += 1
+            log.info("model view covers %.0f%% of the image: tracking against the previous frame", 100 * coverage)
+            return last_view, None, "previous_frame"
+        ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid)
+        flow_ref = last_view if self.config.tracking.flow_reference == "last_frame" else None
+        return ref, flow_ref, "model"
+
+    def _fuse(self, view: View, result: Optional[TrackResult], pose_rect: np.ndarray, index: int) -> None:
+        if self.map is None:
+            return
+        t0 = time.perf_counter()
+        valid = view.valid[0, 0]
+        weight = None
+        if (result is not None and self.config.tracking.fuse_weight == "w3d"
+                and self.odometry.weight_networks is not None and self.config.weights.residuals != "2d"):
+            weight = normalised_fusion_weight(result.w3d[0, 0], valid & (result.w3d[0, 0] > 0))
+        self.map.fuse(view.depth[0, 0], view.image[0], self.odometry.K, torch.as_tensor(pose_rect, dtype=torch.float32),
+                      frame_index=index, weight=weight, valid=valid)
+        self._time("fusion", (time.perf_counter() - t0) * 1000.0)
+
+    # --------------------------------------------------------------------------------------
+    def run(self, progress: bool = True) -> RunResult:
+        """Process every frame; write trajectory rows as they come; never lose finished work."""
+        from tqdm import tqdm
+
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        save_config(self.config, self.out_dir / "config.yaml")
+        result = RunResult(out_dir=self.out_dir)
+        pose_rect = self._initial_rect_pose()
+        last_view: Optional[View] = None
+        n = len(self.dataset)
+        writer = TumStreamWriter(self.out_dir / "trajectory.txt")
+        bar = tqdm(total=n, unit="frame", disable=not progress, dynamic_ncols=True, leave=False)
+        t_start = time.perf_counter()
+        try:
+            for k in range(n):
+                t_frame = time.perf_counter()
+                index = int(self.dataset.indices[k])
+                stamp = float(self.dataset.timestamps[k])
+                record, pose_rect, last_view = self._step(k, index, stamp, last_view, pose_rect)
+                if record.failed:
+                    log.warning("frame %d: %s (pose carried over)", index, record.reason)
+                writer.write(stamp, record.pose)
+                result.records.append(record)
+                self._time("total", (time.perf_counter() - t_frame) * 1000.0)
+                bar.update(1)
+                elapsed = time.perf_counter() - t_start
+                bar.set_postfix(fps=f"{(k + 1) / max(elapsed, 1e-9):.1f}", fail=sum(r.failed for r in result.records))
+        except KeyboardInterrupt:
+            result.interrupted = True
+            log.warning("interrupted after %d frames; results so far are written", len(result.records))
+        finally:
+            bar.close()
+            writer.close()
+        wall = time.perf_counter() - t_start
+        self._finish(result, wall)
+        return result
+
+    def _step(self, k: int, index: int, stamp: float, last_view: Optional[View],
+              pose_rect: np.ndarray) -> tuple[FrameRecord, np.ndarray, Optional[View]]:
+        """Read, track and fuse one frame.
+
+        Returns the frame's record and the new (rectified pose, last good view); a frame that cannot
+        be read or tracked makes a failed record and leaves both unchanged.
+        """
+        try:
+            t0 = time.perf_counter()
+            frame = self.dataset.frame(k)
+            self._time("read", (time.perf_counter() - t0) * 1000.0)
+        except DataError as err:
+            return FrameRecord(index, stamp, pose_rect @ self.R1, True, f"unreadable frame: {err}"), pose_rect, last_view
+        timings: dict = {}
+        use_gt_depth = self.config.depth.source == "groundtruth"
+        gt_depth = frame.gt_depth if use_gt_depth else None
+        if use_gt_depth and gt_depth is None:
+            raise SlamError(f"{self.dataset.path}: depth.source=groundtruth needs ground-truth depth maps (synthetic data)")
+        view = self.odometry.make_view(frame.left, frame.right, frame.mask, gt_depth, timings)
+        for stage, ms in timings.items():
+            self._time(stage, ms)
+        if last_view is None:
+            rec = FrameRecord(index, stamp, pose_rect @ self.R1, False, reference="first")
+            self._fuse(view, None, pose_rect, index)
+            self._log(k, frame, view, None, pose_rect, rec)
+            return rec, pose_rect, view
+        ref, flow_ref, kind = self._reference(last_view, pose_rect)
+        track = self.odometry.track(view, ref, flow_ref)
+        for stage, ms in track.timings_ms.items():
+            self._time(stage, ms)
+        if track.failed:
+            rec = FrameRecord(index, stamp, pose_rect @ self.R1, True, track.reason, kind, track.iterations, track.cost)
+            self._log(k, frame, view, track, pose_rect, rec)
+            return rec, pose_rect, last_view
+        new_pose = pose_rect @ track.relative
+        rec = FrameRecord(index, stamp, new_pose @ self.R1, False, "", kind, track.iterations, track.cost)
+        self._fuse(view, track, new_pose, index)
+        self._log(k, frame, view, track, new_pose, rec)
+        return rec, new_pose, view
+
+    def _log(self, k, frame, view, track, pose_rect, record) -> None:
+        if self.logger is not None:
+            t0 = time.perf_counter()
+            self.logger.log_frame(k, frame, view, track, record, self.map, self.odometry.camera, pose_rect)
+            self._time("logging", (time.perf_counter() - t0) * 1000.0)
+
+    # --------------------------------------------------------------------------------------
+    def _finish(self, result: RunResult, wall_s: float) -> None:
+        from slam.evaluation import evaluate
+        from slam.plots import plot_trajectory
+
+        records = result.records
+        done = len(records)
+        est = np.stack([r.pose for r in records]) if records else np.zeros((0, 4, 4))
+        metrics: dict = {
+            "frames": done,
+            "failed_frames": [r.index for r in records if r.failed],
+            "failures": {str(r.index): r.reason for r in records if r.failed},
+            "fps": done / wall_s if wall_s > 0 else 0.0,
+            "timings_ms": {k: float(np.mean(v)) for k, v in self.timings.items()},
+            "mode": self.config.tracking.mode,
+            "model_fallbacks": self.fallbacks,
+        }
+        if result.interrupted:
+            metrics["interrupted"] = True
+            metrics["stopped_before_frame"] = int(self.dataset.indices[done]) if done < len(self.dataset) else None
+        gt = self.dataset.gt_poses
+        gt_sel = gt[:done] if gt is not None else None
+        if gt_sel is not None and done >= 2:
+            metrics.update(evaluate(gt_sel, est))
+        files = {"trajectory": str(self.out_dir / "trajectory.txt"), "config": str(self.out_dir / "config.yaml")}
+        if self.map is not None and (self.config.tracking.mode == "frame2model" or self.config.tracking.export_map):
+            ply = self.out_dir / "map.ply"
+            # the map lives in the rectified world frame of the VO, which is the world frame: only
+            # camera frames are rotated by R1, the world is shared.
+            result.map_points = self.map.save_ply(ply)
+            metrics["map_points"] = result.map_points
+            files["map"] = str(ply)
+            if self.config.logging.mesh:
+                mesh = self.out_dir / "mesh.ply"
+                metrics["mesh_triangles"] = self.map.save_mesh(mesh)
+                files["mesh"] = str(mesh)
+        if done >= 2:
+            plot_trajectory(self.out_dir / "trajectory.png", est, gt_sel, np.array([r.timestamp for r in records]),
+                            title=f"{self.dataset.path.name} ({self.config.tracking.mode})")
+            files["plot"] = str(self.out_dir / "trajectory.png")
+        (self.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        files["metrics"] = str(self.out_dir / "metrics.json")
+        if self.logger is not None:
+            self.logger.log_final(self.map, est, gt_sel)
+        result.metrics = metrics
+        result.files = files
