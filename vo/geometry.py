@@ -47,7 +47,7 @@ def project(points: torch.Tensor, K: torch.Tensor, eps: float = 1e-6) -> torch.T
     """
     B = points.shape[0]
     K = K.expand(B, 3, 3) if K.dim() == 3 else K[None].expand(B, 3, 3)
-    view = (B,) + (1,) * (points.dim() - 2)
+    view = (B,) + (1,) * (points.dim() - 1)
     z = points[:, 2:3].clamp(min=eps)
     u = K[:, 0, 0].view(view) * points[:, 0:1] / z + K[:, 0, 2].view(view)
     v = K[:, 1, 1].view(view) * points[:, 1:2] / z + K[:, 1, 2].view(view)

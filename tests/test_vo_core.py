@@ -1,0 +1,165 @@
+"""VO core: Lie maps, residual Jacobians, the pose solver, depth from parallax."""
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from vo.config import DepthConfig, SolverConfig
+from vo.depth import depth_from_parallax, flow_consistency, parallax_from_depth
+from vo.geometry import backproject, project, sample_by_flow
+from vo.lie import se3_exp, se3_log
+from vo.residuals import PoseProblem, jacobians, objective_se3, residuals
+from vo.solver import solve_pose
+
+DMAX = 250.0
+
+
+def make_problem(p_gt: torch.Tensor, H=48, W=64, seed=0, dtype=torch.float64):
+    """Exact depth and flow for a smooth surface seen from a known relative pose."""
+    g = torch.Generator().manual_seed(seed)
+    K = torch.tensor([[55.0, 0, W / 2 - 0.5], [0, 55.0, H / 2 - 0.5], [0, 0, 1]], dtype=dtype)
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=dtype), torch.arange(W, dtype=dtype), indexing="ij")
+    depth = 80 + 8 * torch.sin(xs / 9) * torch.cos(ys / 7) + 2 * torch.rand(H, W, generator=g, dtype=dtype)
+    P = backproject(depth[None, None], K) / DMAX
+    T = se3_exp(p_gt)
+    Y = T[:, :3, :3] @ P.flatten(2) + T[:, :3, 3:]
+    target = project(Y, K)
+    s2, s3 = PoseProblem.scales(H, W)
+    ones = torch.ones(1, H * W, dtype=dtype)
+    return PoseProblem(P.flatten(2), target, Y.clone(), ones, ones.clone(), K[None], s2, s3)
+
+
+def p_from_mm_rad(t_mm, r_rad):
+    return torch.tensor([[*(np.asarray(t_mm) / DMAX), *r_rad]], dtype=torch.float64)
+
+
+def pose_errors(p_est, p_gt):
+    """(rotation error rad, translation error mm) between two tangent vectors."""
+    T1, T2 = se3_exp(p_est.double()), se3_exp(p_gt.double())
+    E = torch.linalg.inv(T2) @ T1
+    rot = Rotation.from_matrix(E[0, :3, :3].numpy()).magnitude()
+    return rot, float(E[0, :3, 3].norm()) * DMAX
+
+
+def test_exp_log_round_trip():
+    torch.manual_seed(0)
+    p = torch.randn(64, 6, dtype=torch.float64) * torch.tensor([0.05] * 3 + [0.3] * 3, dtype=torch.float64)
+    p[0] = 0  # identity
+    p[1, 3:] = torch.tensor([1e-9, 0, 0])  # tiny rotation
+    T = se3_exp(p)
+    assert torch.allclose(se3_log(T), p, atol=1e-10)
+    R = T[:, :3, :3].numpy()
+    assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-12)
+    # rotation part agrees with scipy's rotation vector
+    assert np.allclose(Rotation.from_matrix(R).as_rotvec(), p[:, 3:].numpy(), atol=1e-10)
+    T2 = se3_exp(se3_log(T))
+    assert torch.allclose(T2, T, atol=1e-12)
+
+
+def test_analytic_jacobians_match_autograd():
+    p_gt = p_from_mm_rad([0.4, -0.2, 0.7], [0.01, -0.02, 0.005])
+    prob = make_problem(p_gt)
+    T = se3_exp(torch.randn(1, 6, dtype=torch.float64) * 0.01)
+    _, _, Y = residuals(T, prob)
+    J2, J3 = jacobians(Y, prob)
+
+    def stacked(d):
+        e2, e3, _ = residuals(se3_exp(d[None]) @ T, prob)
+        return torch.cat([e2[0].T.reshape(-1), e3[0].T.reshape(-1)])
+
+    J = torch.autograd.functional.jacobian(stacked, torch.zeros(6, dtype=torch.float64))
+    J_analytic = torch.cat([J2[0].reshape(-1, 6), J3[0].reshape(-1, 6)])
+    assert torch.allclose(J, J_analytic, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("method", ["lm", "gauss_newton", "lbfgs"])
+def test_solver_recovers_known_pose(method):
+    p_gt = p_from_mm_rad([0.8, -0.5, 1.2], [0.02, -0.015, 0.01])
+    prob = make_problem(p_gt)
+    res = solve_pose(prob, SolverConfig(method=method))
+    rot_err, trans_err = pose_errors(res.p, p_gt)
+    assert rot_err < 1e-5 and trans_err < 1e-5, (rot_err, trans_err)
+
+
+@pytest.mark.parametrize("mode", ["2d", "3d"])
+def test_each_residual_alone_recovers_the_pose(mode):
+    p_gt = p_from_mm_rad([-0.6, 0.3, 0.4], [-0.01, 0.02, 0.0])
+    prob = make_problem(p_gt, seed=1)
+    zero = torch.zeros_like(prob.w2d)
+    prob = prob.with_weights(prob.w2d if mode == "2d" else zero, prob.w3d if mode == "3d" else zero)
+    res = solve_pose(prob, SolverConfig())
+    rot_err, trans_err = pose_errors(res.p, p_gt)
+    assert rot_err < 1e-5 and trans_err < 1e-5
+
+
+def test_zero_weight_outliers_do_not_move_the_solution():
+    p_gt = p_from_mm_rad([0.5, 0.5, -0.3], [0.01, 0.01, -0.02])
+    prob = make_problem(p_gt, seed=2)
+    g = torch.Generator().manual_seed(3)
+    outliers = torch.rand(prob.w2d.shape, generator=g) < 0.3
+    target = prob.target_px.clone()
+    target[:, :, outliers[0]] += 25.0 * torch.randn(2, int(outliers.sum()), generator=g, dtype=torch.float64)
+    ref = prob.points_ref.clone()
+    ref[:, :, outliers[0]] += 0.05 * torch.randn(3, int(outliers.sum()), generator=g, dtype=torch.float64)
+    w = (~outliers).double()
+    corrupted = PoseProblem(prob.points_cur, target, ref, w, w.clone(), prob.K, prob.s2, prob.s3)
+    res = solve_pose(corrupted, SolverConfig())
+    rot_err, trans_err = pose_errors(res.p, p_gt)
+    assert rot_err < 1e-5 and trans_err < 1e-5
+    # with weight 1 the same outliers do move it: the test can fail
+    spoiled = corrupted.with_weights(torch.ones_like(w), torch.ones_like(w))
+    rot_bad, trans_bad = pose_errors(solve_pose(spoiled, SolverConfig()).p, p_gt)
+    assert trans_bad > 1e-2 or rot_bad > 1e-3
+
+
+def test_solver_batched_matches_single():
+    ps = [p_from_mm_rad([0.3, 0.1, 0.2], [0.01, 0, 0]), p_from_mm_rad([-0.2, 0.4, -0.6], [0, -0.01, 0.02])]
+    probs = [make_problem(p, seed=i) for i, p in enumerate(ps)]
+    batch = PoseProblem(*(torch.cat([getattr(q, f) for q in probs]) for f in
+                          ("points_cur", "target_px", "points_ref", "w2d", "w3d", "K")), probs[0].s2, probs[0].s3)
+    res = solve_pose(batch, SolverConfig())
+    for i, p in enumerate(ps):
+        rot_err, trans_err = pose_errors(res.p[i:i + 1], p)
+        assert rot_err < 1e-5 and trans_err < 1e-5
+
+
+def test_float32_solver_is_accurate_enough_for_tracking():
+    p_gt = p_from_mm_rad([0.8, -0.5, 1.2], [0.02, -0.015, 0.01])
+    prob = make_problem(p_gt).to(torch.float32)
+    res = solve_pose(prob, SolverConfig())
+    rot_err, trans_err = pose_errors(res.p, p_gt)
+    assert rot_err < 1e-4 and trans_err < 1e-3
+
+
+def test_depth_from_parallax_and_validity():
+    fxb = 500.0 * 4.5
+    depth_true = torch.tensor([[[[50.0, 100.0, 300.0, 80.0]]]])
+    parallax = parallax_from_depth(depth_true, fxb)
+    parallax[..., 3] = 0.3  # negative disparity
+    mask = torch.tensor([[[[True, False, True, True]]]])
+    depth, valid = depth_from_parallax(parallax, fxb, DepthConfig(max_depth_mm=250.0), mask)
+    assert valid.tolist() == [[[[True, False, False, False]]]]
+    assert depth[0, 0, 0, 0].item() == pytest.approx(50.0)
+    assert (depth[~valid] == 0).all()
+
+
+def test_flow_consistency_flags_occlusions():
+    H, W = 20, 30
+    fwd = torch.zeros(1, 2, H, W)
+    fwd[:, 0] = 2.0
+    bwd = torch.zeros(1, 2, H, W)
+    bwd[:, 0] = -2.0
+    bwd[:, 0, :, 20:] = 3.0  # inconsistent region in the second view
+    ok = flow_consistency(fwd, bwd, 0.5)
+    assert ok[0, 0, :, :15].all() and not ok[0, 0, :, 19:27].any()
+
+
+def test_sample_by_flow_is_exact_on_integer_shifts():
+    img = torch.arange(60.0).reshape(1, 1, 6, 10)
+    flow = torch.zeros(1, 2, 6, 10)
+    flow[:, 0] = 1.0
+    flow[:, 1] = 2.0
+    out = sample_by_flow(img, flow)
+    assert torch.allclose(out[0, 0, :4, :9], img[0, 0, 2:, 1:])
