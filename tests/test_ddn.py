@@ -36,7 +36,7 @@ def random_weights(prob, seed):
     return w2, w3
 
 
-TIGHT = SolverConfig(method="lm", max_iters=100, step_tol=1e-14)
+TIGHT = SolverConfig(method="lm", max_iters=100, step_tol=1e-14, cost_rtol=0.0)
 
 
 def loss_of(p):

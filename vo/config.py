@@ -65,6 +65,7 @@ class SolverConfig:
             ``lbfgs`` (as in the paper, autograd gradients).
         max_iters: iteration cap.
         step_tol: stop when the update's norm (normalised units / radians) falls below this.
+        cost_rtol: stop when an accepted step lowers the cost by less than this fraction.
         lbfgs_max_iters: iteration cap of L-BFGS.
         max_translation_mm: a relative motion larger than this is a failure.
         max_rotation_deg: a relative rotation larger than this is a failure.
@@ -75,6 +76,7 @@ class SolverConfig:
     method: str = "lm"
     max_iters: int = 30
     step_tol: float = 1e-8
+    cost_rtol: float = 1e-7
     lbfgs_max_iters: int = 100
     max_translation_mm: float = 20.0
     max_rotation_deg: float = 15.0

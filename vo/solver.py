@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import torch
 
 from vo.config import SolverConfig
-from vo.lie import se3_exp, se3_log
-from vo.residuals import PoseProblem, jacobians, objective, objective_se3, residuals
+from vo.lie import se3_exp, se3_log, skew
+from vo.residuals import PoseProblem, objective, objective_se3, residuals
 
 
 @dataclass
@@ -38,25 +38,51 @@ class SolverResult:
     grad_norm: torch.Tensor
 
 
+def _jacobian_2d_rows(Y: torch.Tensor, prob: PoseProblem) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rows of the 2D residual's Jacobian (left perturbation), ``(B, N, 6)`` each for u and v."""
+    x, y = Y[:, 0], Y[:, 1]
+    iz = 1.0 / Y[:, 2].clamp(min=1e-6)
+    xz, yz = x * iz, y * iz
+    B = Y.shape[0]
+    fx = prob.K[:, 0, 0].view(B, 1) * prob.s2
+    fy = prob.K[:, 1, 1].view(B, 1) * prob.s2
+    zero = torch.zeros_like(iz)
+    ju = torch.stack([fx * iz, zero, -fx * xz * iz, -fx * xz * yz, fx * (1 + xz * xz), -fx * yz], -1)
+    jv = torch.stack([zero, fy * iz, -fy * yz * iz, -fy * (1 + yz * yz), fy * xz * yz, fy * xz], -1)
+    return ju, jv
+
+
 def normal_equations(T: torch.Tensor, prob: PoseProblem) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Gauss-Newton system at ``T``.
+    """Gauss-Newton system at ``T`` (the same as ``J^T W J`` and ``J^T W e`` of
+    ``vo.residuals.jacobians``, with the 3D block in closed form from weighted moments of ``Y``).
 
     Returns:
         ``H`` ``(B, 6, 6)`` float64, ``g`` ``(B, 6)`` float64 (gradient / 2) and the cost ``(B,)``.
     """
     e2, e3, Y = residuals(T, prob)
-    J2, J3 = jacobians(Y, prob)
     B = Y.shape[0]
-    w2 = prob.w2d[..., None, None]
-    w3 = prob.w3d[..., None, None]
-    A2 = (J2 * w2).reshape(B, -1, 6)
-    A3 = (J3 * w3).reshape(B, -1, 6)
-    H = A2.transpose(1, 2) @ J2.reshape(B, -1, 6) + A3.transpose(1, 2) @ J3.reshape(B, -1, 6)
-    g = (A2.transpose(1, 2) @ e2.transpose(1, 2).reshape(B, -1, 1)).squeeze(-1) + (
-        A3.transpose(1, 2) @ e3.transpose(1, 2).reshape(B, -1, 1)
-    ).squeeze(-1)
-    cost = (prob.w2d * e2.pow(2).sum(1)).sum(1) + (prob.w3d * e3.pow(2).sum(1)).sum(1)
-    return H.double(), g.double(), cost.double()
+    w2, w3 = prob.w2d, prob.w3d
+    cost = (w2 * e2.pow(2).sum(1)).sum(1) + (w3 * e3.pow(2).sum(1)).sum(1)
+    # 2D block: H2 = sum w (ju ju^T + jv jv^T), g2 = sum w (ju e_u + jv e_v)
+    ju, jv = _jacobian_2d_rows(Y, prob)
+    wu, wv = ju * w2[..., None], jv * w2[..., None]
+    H = (wu.transpose(1, 2) @ ju + wv.transpose(1, 2) @ jv).double()
+    g = ((wu * e2[:, 0, :, None]).sum(1) + (wv * e2[:, 1, :, None]).sum(1)).double()
+    # 3D block: J3 = s3 [I | -[Y]x]; H3 = s3^2 sum w [[I, -[Y]x], [[Y]x, |Y|^2 I - Y Y^T]]
+    s3 = prob.s3
+    Yd, e3d, w3d = Y.double(), e3.double(), w3.double()
+    sw = w3d.sum(1)
+    swY = (Yd * w3d[:, None]).sum(2)  # (B, 3)
+    swYY = (Yd * w3d[:, None]) @ Yd.transpose(1, 2)  # (B, 3, 3)
+    eye = torch.eye(3, dtype=torch.float64, device=Y.device).expand(B, 3, 3)
+    Sk = skew(swY)
+    H3 = torch.zeros(B, 6, 6, dtype=torch.float64, device=Y.device)
+    H3[:, :3, :3] = sw[:, None, None] * eye
+    H3[:, :3, 3:] = -Sk
+    H3[:, 3:, :3] = Sk
+    H3[:, 3:, 3:] = torch.diagonal(swYY, dim1=1, dim2=2).sum(-1)[:, None, None] * eye - swYY
+    g3 = torch.cat([(e3d * w3d[:, None]).sum(2), (torch.cross(Yd, e3d, dim=1) * w3d[:, None]).sum(2)], 1)
+    return H + s3 * s3 * H3, g + s3 * g3, cost.double()
 
 
 def _solve_damped(H: torch.Tensor, g: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
@@ -82,6 +108,8 @@ def solve_pose_lm(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor 
     lam = torch.full((B,), 1e-4 if damping else 0.0, dtype=torch.float64, device=device)
     converged = torch.zeros(B, dtype=torch.bool, device=device)
     H, g, cost = normal_equations(T, prob)
+    cost_prev = cost
+    accepted_before = torch.ones(B, dtype=torch.bool, device=device)
     it = 0
     for it in range(1, config.max_iters + 1):
         d = _solve_damped(H, g, lam)
@@ -97,8 +125,12 @@ def solve_pose_lm(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor 
         if damping:
             lam = torch.where(accept, (lam * 0.3).clamp(min=1e-7), (lam * 10.0).clamp(max=1e6))
         small = d.norm(dim=-1) < config.step_tol
-        stalled = damping & ~accept & (lam >= 1e6)
-        converged = converged | (accept & small) | small | stalled
+        # the cost no longer decreases measurably (the noise floor of float32 data)
+        flat = accept & ((cost_prev - cost) <= config.cost_rtol * cost_prev)
+        rejected_twice = ~accept & ~accepted_before
+        converged = converged | small | flat | rejected_twice
+        accepted_before = accept
+        cost_prev = cost
         if bool(converged.all()):
             break
     return SolverResult(T=T, p=se3_log(T.double()).to(dtype), cost=cost, iterations=it,

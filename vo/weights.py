@@ -134,6 +134,14 @@ class WeightNetworks(nn.Module):
         self.net2d = WeightUNet(IN_CHANNELS_2D, base)
         self.net3d = WeightUNet(IN_CHANNELS_3D, base)
 
+    def low_res(self, x2: torch.Tensor, x3: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Weight maps at the networks' resolution, ``(B, 1, h, w)`` each (zero for an unused residual)."""
+        B, _, h, w = x2.shape
+        zero = torch.zeros(B, 1, h, w, dtype=x2.dtype, device=x2.device)
+        w2 = self.net2d(x2) if self.residuals in ("2d3d", "2d") else zero
+        w3 = self.net3d(x3) if self.residuals in ("2d3d", "3d") else zero
+        return w2, w3
+
     def forward(self, inp: WeightInputs) -> tuple[torch.Tensor, torch.Tensor]:
         """``(w2d, w3d)``, each ``(B, 1, H, W)`` in [0, 1], zero on invalid pixels."""
         H, W = inp.image_cur.shape[-2:]
@@ -150,6 +158,23 @@ class WeightNetworks(nn.Module):
         w2 = run(self.net2d, x2) if self.residuals in ("2d3d", "2d") else zero
         w3 = run(self.net3d, x3) if self.residuals in ("2d3d", "3d") else zero
         return w2, w3
+
+
+def sample_weights(w_low: torch.Tensor, pixels: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Bilinear upsampling of low-resolution weight maps evaluated at given pixels only
+    (equal to ``F.interpolate(..., size=(height, width), mode="bilinear")`` then indexing).
+
+    Args:
+        w_low: ``(B, 1, h, w)``.
+        pixels: ``(B, 2, n)`` pixel coordinates (x, y) in the full-resolution image.
+
+    Returns:
+        ``(B, n)`` weights.
+    """
+    gx = (pixels[:, 0] + 0.5) / width * 2.0 - 1.0
+    gy = (pixels[:, 1] + 0.5) / height * 2.0 - 1.0
+    grid = torch.stack([gx, gy], -1)[:, None]  # (B, 1, n, 2)
+    return F.grid_sample(w_low, grid.to(w_low.dtype), mode="bilinear", padding_mode="border", align_corners=False)[:, 0, 0]
 
 
 def constant_weights(valid: torch.Tensor, w2d: float, w3d: float, residuals: str) -> tuple[torch.Tensor, torch.Tensor]:

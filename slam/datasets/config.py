@@ -15,7 +15,8 @@ class DataConfig:
             are rectified, video layouts (StereoMIS raw, SCARED) are not.
         rectify_mode: ``full`` (OpenCV stereoRectify, zero disparity offset) or ``pseudo`` (undistort
             and align the principal points only; SCARED's calibrations are poor for full rectification).
-        width, height: size frames are resized to (intrinsics scaled); 0 keeps the native size.
+        width, height: size frames are resized to (intrinsics scaled); 0 keeps the native size
+            (the configs for StereoMIS and SCARED use 640x512, the paper's half resolution).
         use_mask_files: combine the dataset's instrument masks (``masks/``) when present.
         specular_threshold: a pixel whose maximum channel intensity (0-1) reaches this is specular.
         specular_dilate_px: radius of the dilation applied to the specular mask.
@@ -25,8 +26,8 @@ class DataConfig:
     layout: str = "auto"
     rectified: str = "auto"
     rectify_mode: str = "full"
-    width: int = 640
-    height: int = 512
+    width: int = 0
+    height: int = 0
     use_mask_files: bool = True
     specular_threshold: float = 0.96
     specular_dilate_px: int = 3

@@ -1,0 +1,329 @@
+"""Reading stereo calibration files.
+
+Three formats are read here, each into a plain data structure:
+
+* ``StereoCalibration.ini`` (StereoMIS): :func:`read_stereomis_ini` -> :class:`RawStereoCalibration`
+* ``endoscope_calibration.yaml`` (SCARED, OpenCV FileStorage): :func:`read_scared_yaml`
+  -> :class:`RawStereoCalibration`
+* ``calibration.yaml`` (plain folders of rectified images): :func:`read_plain_yaml`
+  -> :class:`vo.camera.StereoCamera`
+
+A raw calibration describes two distorted, unrectified pinhole cameras; turning it into the
+rectified :class:`~vo.camera.StereoCamera` the VO core works with is the job of
+:mod:`slam.rectification`. Lengths are millimetres throughout.
+
+Every missing, unreadable or malformed file raises :class:`slam.errors.DataError` with a
+one-line message naming the file and the problem.
+"""
+from __future__ import annotations
+
+import configparser
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from slam.errors import DataError
+from vo.camera import StereoCamera
+
+
+@dataclass
+class RawStereoCalibration:
+    """An unrectified, distorted stereo pair in OpenCV conventions.
+
+    Attributes:
+        K1, K2: ``(3, 3)`` float64 intrinsics of the left / right camera, pixels.
+        D1, D2: float64 distortion coefficients in OpenCV order
+            ``k1 k2 p1 p2 [k3 [k4 k5 k6]]`` (length 4, 5 or 8).
+        R: ``(3, 3)`` rotation and ``T``: ``(3,)`` translation (mm) of the OpenCV stereo convention
+            ``X_right = R @ X_left + T`` (points expressed in the left camera frame mapped to the
+            right camera frame). For a right camera to the right of the left one ``T[0] < 0``.
+        image_size: ``(width, height)`` of each view, pixels.
+        source: the file the calibration was read from (for error messages), or None.
+    """
+
+    K1: np.ndarray
+    D1: np.ndarray
+    K2: np.ndarray
+    D2: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    image_size: tuple[int, int]
+    source: Optional[Path] = None
+
+    def __post_init__(self) -> None:
+        self.K1 = np.asarray(self.K1, dtype=np.float64).reshape(3, 3)
+        self.K2 = np.asarray(self.K2, dtype=np.float64).reshape(3, 3)
+        self.D1 = np.asarray(self.D1, dtype=np.float64).reshape(-1)
+        self.D2 = np.asarray(self.D2, dtype=np.float64).reshape(-1)
+        self.R = np.asarray(self.R, dtype=np.float64).reshape(3, 3)
+        self.T = np.asarray(self.T, dtype=np.float64).reshape(3)
+        self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
+
+    @property
+    def baseline_mm(self) -> float:
+        """Distance between the optical centres, ``|T|`` in mm."""
+        return float(np.linalg.norm(self.T))
+
+    def name(self) -> str:
+        """How error messages refer to this calibration."""
+        return str(self.source) if self.source is not None else "calibration"
+
+    def validate(self) -> "RawStereoCalibration":
+        """Check the values are usable; raise DataError naming the file otherwise."""
+        where = self.name()
+        w, h = self.image_size
+        if w <= 0 or h <= 0:
+            raise DataError(f"{where}: invalid image size {w}x{h}")
+        for label, K in (("left", self.K1), ("right", self.K2)):
+            if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+                raise DataError(f"{where}: invalid {label} intrinsics (focal lengths must be positive and finite)")
+        for label, D in (("left", self.D1), ("right", self.D2)):
+            if D.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(D)):
+                raise DataError(f"{where}: invalid {label} distortion coefficients ({D.size} values)")
+        if not np.all(np.isfinite(self.R)) or not np.all(np.isfinite(self.T)):
+            raise DataError(f"{where}: non-finite stereo extrinsics")
+        if abs(np.linalg.det(self.R) - 1.0) > 1e-3 or np.abs(self.R @ self.R.T - np.eye(3)).max() > 1e-3:
+            raise DataError(f"{where}: stereo rotation R is not a rotation matrix")
+        if self.baseline_mm <= 0:
+            raise DataError(f"{where}: zero stereo baseline (T = 0)")
+        return self
+
+
+# --------------------------------------------------------------------------------------------
+# StereoMIS: StereoCalibration.ini
+# --------------------------------------------------------------------------------------------
+
+def read_stereomis_ini(path: str | Path) -> RawStereoCalibration:
+    """Read a StereoMIS ``StereoCalibration.ini``.
+
+    Format: two sections ``[StereoLeft]`` and ``[StereoRight]`` with ``key = value`` (or
+    ``key=value``) lines: ``res_x res_y`` (image size), ``fc_x fc_y`` (focal lengths),
+    ``cc_x cc_y`` (principal point), ``kc_0 .. kc_7`` (distortion in OpenCV order
+    ``k1 k2 p1 p2 k3 k4 k5 k6``; missing ``kc_5..kc_7`` default to 0). The right section also holds
+    ``T_0..T_2`` (mm) and ``R_0..R_8`` (row-major) with ``X_right = R X_left + T``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: calibration file not found")
+    parser = configparser.ConfigParser(strict=False, interpolation=None)
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            parser.read_file(fh)
+    except (configparser.Error, OSError, UnicodeError) as exc:
+        raise DataError(f"{path}: cannot parse calibration file ({_one_line(exc)})") from None
+
+    def section(name: str) -> configparser.SectionProxy:
+        for sec in parser.sections():
+            if sec.strip().lower() == name.lower():
+                return parser[sec]
+        raise DataError(f"{path}: missing section [{name}]")
+
+    def number(sec: configparser.SectionProxy, key: str, default: Optional[float] = None) -> float:
+        raw = sec.get(key)
+        if raw is None:
+            if default is not None:
+                return default
+            raise DataError(f"{path}: missing key '{key}' in [{sec.name}]")
+        try:
+            value = float(raw.strip().strip('"').strip("'"))
+        except ValueError:
+            raise DataError(f"{path}: '{key}' in [{sec.name}] is not a number: '{raw}'") from None
+        if not math.isfinite(value):
+            raise DataError(f"{path}: '{key}' in [{sec.name}] is not finite")
+        return value
+
+    def camera(sec: configparser.SectionProxy) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+        K = np.array(
+            [[number(sec, "fc_x"), 0.0, number(sec, "cc_x")],
+             [0.0, number(sec, "fc_y"), number(sec, "cc_y")],
+             [0.0, 0.0, 1.0]]
+        )
+        D = np.array([number(sec, f"kc_{i}", 0.0 if i >= 5 else None) for i in range(8)])
+        size = (int(round(number(sec, "res_x"))), int(round(number(sec, "res_y"))))
+        return K, D, size
+
+    left, right = section("StereoLeft"), section("StereoRight")
+    K1, D1, size1 = camera(left)
+    K2, D2, size2 = camera(right)
+    if size1 != size2:
+        raise DataError(f"{path}: left and right image sizes differ ({size1[0]}x{size1[1]} vs {size2[0]}x{size2[1]})")
+    T = np.array([number(right, f"t_{i}") for i in range(3)])
+    R = np.array([number(right, f"r_{i}") for i in range(9)]).reshape(3, 3)
+    return RawStereoCalibration(K1=K1, D1=D1, K2=K2, D2=D2, R=R, T=T, image_size=size1, source=path).validate()
+
+
+# --------------------------------------------------------------------------------------------
+# SCARED: endoscope_calibration.yaml (OpenCV FileStorage)
+# --------------------------------------------------------------------------------------------
+
+_SIZE_PAIRS = (("width", "height"), ("image_width", "image_height"), ("Camera.width", "Camera.height"),
+               ("imageWidth", "imageHeight"), ("res_x", "res_y"))
+_SIZE_VECTORS = ("image_size", "imageSize", "ImageSize", "size")
+
+
+def read_scared_yaml(path: str | Path, image_size: Optional[Sequence[int]] = None) -> RawStereoCalibration:
+    """Read a SCARED ``endoscope_calibration.yaml`` (OpenCV FileStorage, ``!!opencv-matrix`` nodes).
+
+    Matrices ``M1 D1 M2 D2 R T`` (``T`` in mm, ``X_right = R X_left + T``). The image size is taken
+    from the file when present (``width``/``height``, ``image_width``/``image_height``,
+    ``Camera.width``/``Camera.height`` or a 2-vector ``image_size``/``imageSize``), else from
+    ``image_size`` = ``(width, height)`` given by the caller (SCARED files usually have none: the
+    reader passes the video's per-view frame size).
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: calibration file not found")
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except Exception as exc:  # cv2.error, or SystemError wrapping it (OpenCV 5 bindings)
+        raise DataError(f"{path}: cannot parse OpenCV calibration file ({_one_line(exc)})") from None
+    if not fs.isOpened():
+        raise DataError(f"{path}: cannot open OpenCV calibration file")
+    try:
+        def matrix(key: str, shape: tuple[int, ...] | None) -> np.ndarray:
+            node = fs.getNode(key)
+            if node.empty() or node.isNone():
+                raise DataError(f"{path}: missing matrix '{key}'")
+            if node.isSeq():
+                values = [node.at(i).real() for i in range(node.size())]
+                mat = np.asarray(values, dtype=np.float64)
+            else:
+                mat = node.mat()
+                if mat is None:
+                    raise DataError(f"{path}: '{key}' is not a matrix")
+                mat = np.asarray(mat, dtype=np.float64)
+            if shape is not None:
+                if mat.size != int(np.prod(shape)):
+                    raise DataError(f"{path}: '{key}' has {mat.size} values, expected {int(np.prod(shape))}")
+                mat = mat.reshape(shape)
+            return mat
+
+        K1 = matrix("M1", (3, 3))
+        D1 = matrix("D1", None).reshape(-1)
+        K2 = matrix("M2", (3, 3))
+        D2 = matrix("D2", None).reshape(-1)
+        R = matrix("R", None)
+        if R.size == 3:  # a Rodrigues vector
+            R = cv2.Rodrigues(R.reshape(3, 1))[0]
+        elif R.size == 9:
+            R = R.reshape(3, 3)
+        else:
+            raise DataError(f"{path}: 'R' has {R.size} values, expected 9 (or a 3-vector)")
+        T = matrix("T", (3,))
+        size = _filestorage_size(fs)
+    finally:
+        fs.release()
+    if size is None:
+        if image_size is None:
+            raise DataError(f"{path}: no image size in the calibration file and none given")
+        size = (int(image_size[0]), int(image_size[1]))
+    return RawStereoCalibration(K1=K1, D1=D1, K2=K2, D2=D2, R=R, T=T, image_size=size, source=path).validate()
+
+
+def _filestorage_size(fs) -> Optional[tuple[int, int]]:
+    def scalar(key: str) -> Optional[float]:
+        node = fs.getNode(key)
+        if node.empty() or node.isNone():
+            return None
+        if node.isInt() or node.isReal():
+            return float(node.real())
+        if node.isString():
+            try:
+                return float(node.string())
+            except ValueError:
+                return None
+        return None
+
+    for wkey, hkey in _SIZE_PAIRS:
+        w, h = scalar(wkey), scalar(hkey)
+        if w is not None and h is not None and w > 0 and h > 0:
+            return int(round(w)), int(round(h))
+    for key in _SIZE_VECTORS:
+        node = fs.getNode(key)
+        if node.empty() or node.isNone():
+            continue
+        if node.isSeq() and node.size() == 2:
+            w, h = node.at(0).real(), node.at(1).real()
+        else:
+            mat = node.mat()
+            if mat is None or mat.size != 2:
+                continue
+            w, h = mat.reshape(-1)[:2]
+        if w > 0 and h > 0:
+            return int(round(w)), int(round(h))
+    return None
+
+
+# --------------------------------------------------------------------------------------------
+# Plain folders: calibration.yaml (already rectified)
+# --------------------------------------------------------------------------------------------
+
+_PLAIN_KEYS = ("fx", "fy", "cx", "cy", "baseline_mm", "width", "height")
+
+
+def read_plain_yaml(path: str | Path) -> StereoCamera:
+    """Read the ``calibration.yaml`` of a plain folder of *rectified* stereo images.
+
+    Format (YAML mapping, all keys required, lengths in mm, pixel coordinates with the origin at
+    the centre of the top-left pixel)::
+
+        fx: 520.0          # focal length, pixels (shared by both rectified views)
+        fy: 520.0
+        cx: 319.5          # principal point, pixels
+        cy: 255.5
+        baseline_mm: 4.3   # distance between the optical centres; the right view is at +x
+        width: 640         # image size the intrinsics refer to (the PNGs' size)
+        height: 512
+
+    Unknown keys are ignored (e.g. a ``comment``).
+    """
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: calibration file not found")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = yaml.safe_load(fh)
+    except (yaml.YAMLError, OSError, UnicodeError) as exc:
+        raise DataError(f"{path}: cannot parse YAML ({_one_line(exc)})") from None
+    if not isinstance(data, dict):
+        raise DataError(f"{path}: expected a mapping with keys {', '.join(_PLAIN_KEYS)}")
+    values = {}
+    for key in _PLAIN_KEYS:
+        if key not in data:
+            raise DataError(f"{path}: missing key '{key}'")
+        raw = data[key]
+        if isinstance(raw, bool):
+            raise DataError(f"{path}: '{key}' is not a number: {raw!r}")
+        try:
+            value = float(raw)
+        except (TypeError, ValueError):
+            raise DataError(f"{path}: '{key}' is not a number: {raw!r}") from None
+        if not math.isfinite(value):
+            raise DataError(f"{path}: '{key}' is not finite")
+        values[key] = value
+    for key in ("fx", "fy", "baseline_mm", "width", "height"):
+        if values[key] <= 0:
+            raise DataError(f"{path}: '{key}' must be positive, got {values[key]:g}")
+    for key in ("width", "height"):
+        if values[key] != int(values[key]):
+            raise DataError(f"{path}: '{key}' must be an integer, got {values[key]:g}")
+    K = np.array([[values["fx"], 0.0, values["cx"]], [0.0, values["fy"], values["cy"]], [0.0, 0.0, 1.0]])
+    return StereoCamera(K=K, baseline_mm=values["baseline_mm"], width=int(values["width"]), height=int(values["height"]))
+
+
+def _one_line(exc: BaseException) -> str:
+    """A short one-line description of an exception (OpenCV's multi-line errors condensed)."""
+    if exc.__cause__ is not None and isinstance(exc, SystemError):
+        exc = exc.__cause__
+    text = " ".join(str(exc).split())
+    marker = text.find("error: (")
+    if marker >= 0:  # "OpenCV(5.0.0) /path/file.cpp:365: error: (-212:Parsing error) ..." -> the part after "error:"
+        text = text[marker + len("error: "):]
+    return text[:200] if text else type(exc).__name__

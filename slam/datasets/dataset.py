@@ -1,0 +1,248 @@
+"""The interface every dataset reader implements, and the per-frame pipeline they share.
+
+A reader (one per layout) knows where a sequence's files are; :class:`StereoDataset` turns what
+it reads into :class:`~slam.datasets.base.StereoFrame` objects: rectification/resizing
+(:mod:`slam.rectification`), the validity mask (:mod:`slam.datasets.masks`), ground truth.
+
+Indexing. ``len(ds)``, ``ds.frame(i)``, ``iter(ds)``, ``ds.timestamps`` and ``ds.gt_poses`` all
+refer to the frames of the current *view*: ``ds.select("2:8:2")`` returns a view of frames 2, 4, 6
+in which ``frame(0)`` is sequence frame 2. ``ds.indices`` maps view positions to sequence
+indices, and ``StereoFrame.index`` is always the sequence index. A freshly opened dataset is a
+view of all frames.
+
+Ground truth. One pose per frame, in order. A ground-truth file with fewer poses than the
+sequence has frames is a DataError naming it; with more poses, the extra trailing poses are
+dropped with a warning (recordings often log kinematics slightly past the last video frame, and
+the frames are what is processed). Poses are ``T_wc`` of the *original* left camera in mm, as in
+the files; the VO's rectified-camera poses convert with ``R1`` (see :mod:`slam.rectification`).
+"""
+from __future__ import annotations
+
+import copy
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Optional
+
+import cv2
+import numpy as np
+
+from slam.datasets.base import StereoFrame
+from slam.datasets.config import DataConfig
+from slam.datasets.masks import combine_masks
+from slam.datasets.selection import parse_frames
+from slam.errors import DataError
+from slam.tum import read_tum
+
+
+@dataclass
+class RawFrame:
+    """What a reader returns for one frame, before rectification and resizing.
+
+    Attributes:
+        left, right: ``(H, W, 3)`` uint8 RGB at the reader's input size.
+        instrument: ``(H, W)`` bool instrument mask of the left view (True = tissue), or None.
+        depth: ``(H, W)`` float32 depth of the left view in mm (0 = unknown), or None.
+        extras: per-frame arrays of the left view at the input size (mapped like ``depth``) or
+            other values (passed through).
+        source: how error messages name the frame (a file or ``video:frame``).
+    """
+
+    left: np.ndarray
+    right: np.ndarray
+    instrument: Optional[np.ndarray] = None
+    depth: Optional[np.ndarray] = None
+    extras: dict = field(default_factory=dict)
+    source: str = ""
+
+
+class StereoDataset:
+    """A stereo sequence: rectified camera, timestamps, optional ground truth and lazy frames.
+
+    Attributes:
+        path: the sequence folder.
+        layout: ``stereomis`` | ``stereomis_raw`` | ``scared`` | ``plain``.
+        config: the :class:`DataConfig` it was opened with.
+        camera: the rectified :class:`~vo.camera.StereoCamera` at the output size.
+        R1: ``(3, 3)`` rotation from the original to the rectified left camera frame
+            (``T_wc_original = T_wc_rect @ [[R1, 0], [0, 1]]``, see :mod:`slam.rectification`).
+        indices: ``(N,)`` sequence indices of the frames of this view.
+        timestamps: ``(N,)`` float64 of this view (ground truth's where it exists, else index / fps).
+        gt_poses: ``(N, 4, 4)`` float64 ``T_wc`` of the original left camera in mm, or None.
+        num_frames_total: frames in the whole sequence.
+    """
+
+    layout: str = "?"
+
+    def __init__(self, path: Path, config: DataConfig, processor, n_frames: int,
+                 timestamps: Optional[np.ndarray] = None, gt_poses: Optional[np.ndarray] = None):
+        self.path = Path(path)
+        self.config = config
+        self.processor = processor
+        self.camera = processor.camera
+        self.R1 = np.asarray(processor.R1, dtype=np.float64)
+        self.num_frames_total = int(n_frames)
+        if timestamps is None:
+            fps = config.fps if config.fps and config.fps > 0 else 25.0
+            timestamps = np.arange(self.num_frames_total, dtype=np.float64) / fps
+        self._timestamps = np.asarray(timestamps, dtype=np.float64)
+        self._gt_poses = None if gt_poses is None else np.asarray(gt_poses, dtype=np.float64)
+        self.indices = np.arange(self.num_frames_total, dtype=np.int64)
+
+    # -- implemented by readers -----------------------------------------------------------------
+    def _read(self, index: int) -> RawFrame:
+        """Read sequence frame ``index`` (0-based) at the input size."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Release open files (videos). The dataset must not be used afterwards."""
+
+    # -- the view ----------------------------------------------------------------------------------
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._timestamps[self.indices]
+
+    @property
+    def gt_poses(self) -> Optional[np.ndarray]:
+        return None if self._gt_poses is None else self._gt_poses[self.indices]
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __iter__(self) -> Iterator[StereoFrame]:
+        for i in range(len(self)):
+            yield self.frame(i)
+
+    def __enter__(self) -> "StereoDataset":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        cam = self.camera
+        return (f"<{type(self).__name__} {self.layout} '{self.path}': {len(self)}/{self.num_frames_total} frames, "
+                f"{cam.width}x{cam.height}, fx={cam.fx:.1f}, baseline={cam.baseline_mm:.3f} mm, "
+                f"gt={'yes' if self._gt_poses is not None else 'no'}>")
+
+    def select(self, spec: str | int | None) -> "StereoDataset":
+        """A view restricted to the frames ``spec`` selects among this view's frames
+        (see :func:`slam.datasets.selection.parse_frames`). Shares files with this dataset."""
+        positions = parse_frames(spec, len(self))
+        view = copy.copy(self)
+        view.indices = self.indices[positions]
+        return view
+
+    def frame(self, i: int) -> StereoFrame:
+        """Frame at position ``i`` of this view, rectified and resized (reads only that frame)."""
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"frame {i} out of range for {n} frames")
+        index = int(self.indices[i])
+        raw = self._read(index)
+        return self._process(index, raw)
+
+    def _process(self, index: int, raw: RawFrame) -> StereoFrame:
+        proc, cfg = self.processor, self.config
+        src = raw.source or f"{self.path} frame {index}"
+        left, right = proc.rectify(raw.left, raw.right, src)
+        instrument = None
+        if raw.instrument is not None and cfg.use_mask_files:
+            instrument = proc.rectify_left_mask(raw.instrument, src)
+        mask = combine_masks(left, instrument, cfg.specular_threshold, cfg.specular_dilate_px, proc.valid_mask)
+        depth = None
+        if raw.depth is not None:
+            depth = proc.rectify_left_nearest(np.asarray(raw.depth, dtype=np.float32), src)
+        extras = {}
+        for key, value in raw.extras.items():
+            if isinstance(value, np.ndarray) and value.ndim >= 2 and value.shape[:2] == raw.left.shape[:2]:
+                value = proc.rectify_left_nearest(value, src)
+            extras[key] = value
+        gt = None if self._gt_poses is None else self._gt_poses[index].copy()
+        return StereoFrame(
+            index=index,
+            timestamp=float(self._timestamps[index]),
+            left=np.ascontiguousarray(left),
+            right=np.ascontiguousarray(right),
+            mask=mask,
+            gt_pose=gt,
+            gt_depth=depth,
+            extras=extras,
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# helpers shared by the readers
+# --------------------------------------------------------------------------------------------
+
+def read_rgb(path: Path) -> np.ndarray:
+    """An image file as ``(H, W, 3)`` uint8 RGB; DataError naming the file if unreadable."""
+    img = _imread(path, cv2.IMREAD_COLOR)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_mask(path: Path, shape: Optional[tuple[int, ...]] = None) -> np.ndarray:
+    """A mask image as ``(H, W)`` bool, True where any channel is non-zero.
+
+    ``shape``: the frame's ``(H, W, ...)``; a mask of another size is a DataError naming the file.
+    """
+    img = _imread(path, cv2.IMREAD_UNCHANGED)
+    _check_shape(img, shape, path)
+    if img.ndim == 3:
+        img = img.max(axis=2)
+    return img > 0
+
+
+def read_scaled_uint(path: Path, scale: float, shape: Optional[tuple[int, ...]] = None) -> np.ndarray:
+    """An integer image (e.g. uint16 depth) times ``scale``, float32 (size checked against ``shape``)."""
+    img = _imread(path, cv2.IMREAD_UNCHANGED)
+    _check_shape(img, shape, path)
+    return img.astype(np.float32) * np.float32(scale)
+
+
+def _check_shape(img: np.ndarray, shape: Optional[tuple[int, ...]], path: Path) -> None:
+    if shape is not None and img.shape[:2] != tuple(shape[:2]):
+        raise DataError(f"{path}: image is {img.shape[1]}x{img.shape[0]}, but the frame is {shape[1]}x{shape[0]}")
+
+
+def _imread(path: Path, flags: int) -> np.ndarray:
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: image file not found")
+    try:
+        img = cv2.imread(str(path), flags)
+    except cv2.error:
+        img = None
+    if img is None or img.size == 0:
+        raise DataError(f"{path}: cannot read image (corrupt or not an image)")
+    if img.dtype not in (np.uint8, np.uint16):
+        raise DataError(f"{path}: unsupported image type {img.dtype}")
+    if flags == cv2.IMREAD_COLOR and img.dtype != np.uint8:
+        img = (img >> 8).astype(np.uint8)
+    return img
+
+
+def match_groundtruth(source: str, stamps: Optional[np.ndarray], poses: np.ndarray, n_frames: int
+                      ) -> tuple[Optional[np.ndarray], np.ndarray]:
+    """Reconcile ground truth with the frame count.
+
+    One pose per frame, in order. More poses than frames: the extra trailing poses are dropped
+    with a warning (recordings often log kinematics a little past the last video frame); fewer:
+    DataError naming ``source``.
+    """
+    if len(poses) < n_frames:
+        raise DataError(f"{source}: {len(poses)} poses for {n_frames} frames (need one pose per frame)")
+    if len(poses) > n_frames:
+        warnings.warn(f"{source}: {len(poses)} poses for {n_frames} frames; ignoring the last {len(poses) - n_frames}",
+                      stacklevel=3)
+        poses = poses[:n_frames]
+        stamps = None if stamps is None else stamps[:n_frames]
+    return stamps, poses
+
+
+def load_tum_groundtruth(path: Path, n_frames: int) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
+    """``groundtruth.txt`` (TUM, metres) -> timestamps and ``T_wc`` in mm, or (None, None) if absent."""
+    if not path.exists():
+        return None, None
+    stamps, poses = read_tum(path, scale_to_mm=True)
+    return match_groundtruth(str(path), stamps, poses, n_frames)

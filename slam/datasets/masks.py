@@ -1,0 +1,66 @@
+"""Validity masks: specular highlights and instrument masks.
+
+A frame's ``mask`` (True = valid tissue) is ``instrument_mask AND NOT specular_mask AND valid``,
+all at the output size: the instrument mask comes from the dataset's mask files (non-zero =
+tissue, 0 = instrument) when present and enabled, the specular mask is detected on the
+rectified, resized left image, and ``valid`` marks rectified pixels that map inside the raw image.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import cv2
+import numpy as np
+
+
+def specular_mask(rgb: np.ndarray, threshold: float, dilate_px: int) -> np.ndarray:
+    """Specular highlights by maximum-intensity detection.
+
+    A pixel is specular when its maximum channel intensity, scaled to 0-1 (``/ 255``), reaches
+    ``threshold``; the detection is then dilated with an elliptical kernel of radius ``dilate_px``
+    (diameter ``2 * dilate_px + 1``) to cover the highlight's blurry rim.
+
+    Args:
+        rgb: ``(H, W, 3)`` uint8 image (channel order irrelevant).
+        threshold: in (0, 1]; values > 1 disable the detection.
+        dilate_px: dilation radius in pixels, 0 = none.
+
+    Returns:
+        ``(H, W)`` bool, True = specular.
+    """
+    rgb = np.asarray(rgb)
+    if rgb.ndim == 3:
+        peak = rgb.max(axis=2)
+    elif rgb.ndim == 2:
+        peak = rgb
+    else:
+        raise ValueError(f"expected an (H, W, 3) image, got shape {rgb.shape}")
+    if rgb.dtype == np.uint8:
+        cut = int(np.ceil(threshold * 255.0 - 1e-9))
+        spec = peak >= cut if cut <= 255 else np.zeros(peak.shape, dtype=bool)
+    else:
+        spec = peak.astype(np.float64) / 255.0 >= threshold
+    r = int(dilate_px)
+    if r > 0 and spec.any():
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        spec = cv2.dilate(spec.astype(np.uint8), kernel) > 0
+    return spec
+
+
+def combine_masks(
+    left_rgb: np.ndarray,
+    instrument: Optional[np.ndarray],
+    threshold: float,
+    dilate_px: int,
+    valid: Optional[np.ndarray] = None,
+) -> np.ndarray:
+    """The frame mask: ``instrument AND NOT specular(left_rgb) AND valid`` (True = valid tissue).
+
+    ``instrument`` (True = tissue) and ``valid`` may be None (all True); all at the image's size.
+    """
+    mask = ~specular_mask(left_rgb, threshold, dilate_px)
+    if instrument is not None:
+        mask &= np.asarray(instrument, dtype=bool)
+    if valid is not None:
+        mask &= np.asarray(valid, dtype=bool)
+    return mask

@@ -1,0 +1,81 @@
+"""Which reader opens a folder: auto-detection and :func:`open_dataset`.
+
+Detection (first match wins; ``config.layout`` other than ``auto`` skips it):
+
+1. ``video_frames/``                                 -> ``stereomis`` (pre-processed StereoMIS / synthetic)
+2. ``endoscope_calibration.yaml`` or ``data/rgb.mp4`` -> ``scared``
+3. ``left/`` and ``right/``                          -> ``plain``
+4. a ``*.mp4`` in the folder                         -> ``stereomis_raw``
+
+A detected layout with missing pieces (e.g. no calibration) fails in its reader with a DataError
+naming the missing file.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+from slam.datasets.config import DataConfig
+from slam.datasets.dataset import StereoDataset
+from slam.datasets.plain import PlainDataset
+from slam.datasets.scared import ScaredDataset
+from slam.datasets.stereomis import StereoMISDataset
+from slam.datasets.stereomis_raw import StereoMISRawDataset
+from slam.errors import ConfigError, DataError
+
+#: layout name -> reader class, in detection order.
+READERS: dict[str, type[StereoDataset]] = {
+    "stereomis": StereoMISDataset,
+    "scared": ScaredDataset,
+    "plain": PlainDataset,
+    "stereomis_raw": StereoMISRawDataset,
+}
+
+LOOKED_FOR = ("video_frames/ (StereoMIS)", "endoscope_calibration.yaml + data/rgb.mp4 (SCARED)",
+              "left/ + right/ + calibration.yaml (plain)", "*.mp4 + StereoCalibration.ini (StereoMIS raw)")
+
+
+def validate_config(config: DataConfig) -> None:
+    """Raise ConfigError for values the readers cannot use."""
+    if config.layout != "auto" and config.layout not in READERS:
+        raise ConfigError(f"data.layout: unknown layout '{config.layout}' (expected auto, {', '.join(READERS)})")
+    if config.rectified not in ("auto", "yes", "no"):
+        raise ConfigError(f"data.rectified: expected auto, yes or no, got '{config.rectified}'")
+    if config.rectify_mode not in ("full", "pseudo"):
+        raise ConfigError(f"data.rectify_mode: expected full or pseudo, got '{config.rectify_mode}'")
+    for key in ("width", "height"):
+        value = getattr(config, key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ConfigError(f"data.{key}: expected an integer >= 0 (0 = native size), got {value!r}")
+    if not 0 < float(config.specular_threshold):
+        raise ConfigError(f"data.specular_threshold: expected a value in (0, 1] (> 1 disables), got {config.specular_threshold}")
+    if int(config.specular_dilate_px) < 0:
+        raise ConfigError(f"data.specular_dilate_px: expected >= 0, got {config.specular_dilate_px}")
+    if not float(config.fps) > 0:
+        raise ConfigError(f"data.fps: expected a positive frame rate, got {config.fps}")
+
+
+def detect_layout(path: str | Path) -> str:
+    """The layout name of a sequence folder; DataError naming the folder if none matches."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: no such folder")
+    if not path.is_dir():
+        raise DataError(f"{path}: not a folder (give the sequence folder)")
+    for name, reader in READERS.items():
+        if reader.detect(path):
+            return name
+    empty = not any(path.iterdir())
+    what = "empty folder" if empty else "unknown dataset layout"
+    raise DataError(f"{path}: {what}; looked for {'; '.join(LOOKED_FOR)}")
+
+
+def open_dataset(path: str | Path, config: Optional[DataConfig] = None) -> StereoDataset:
+    """Open the sequence in ``path`` with the reader of ``config.layout`` (``auto``: detected)."""
+    config = config or DataConfig()
+    validate_config(config)
+    path = Path(path)
+    layout = detect_layout(path) if config.layout == "auto" else config.layout
+    if config.layout != "auto" and not path.is_dir():
+        raise DataError(f"{path}: no such folder" if not path.exists() else f"{path}: not a folder")
+    return READERS[layout](path, config)

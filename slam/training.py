@@ -1,0 +1,411 @@
+"""``slam train``: learn the weight networks end to end through the pose optimum (paper Sec. 2.2).
+
+Data: sequences with ground truth (by default the project's own synthetic sequences, generated
+on first use into the cache), pairs 1..``max_gap`` frames apart balanced between moving and
+static camera, split 80/20 into training and validation. For each pair the correspondences and
+the network inputs are computed once and cached: the weight networks' inputs at 1/``downscale``
+resolution, and the pose problem at ``pixels_per_pair`` randomly drawn valid pixels (the weight
+maps are smooth, so their bilinear upsampling evaluated at those pixels is exact and training
+needs no full-resolution tensors).
+
+Loss: L1 between the declarative layer's optimum p* and the ground-truth relative pose in se(3),
+translation in the solver's normalised units (eq. 7). Adam, early stopping on the validation loss.
+Under ``torchrun`` with several processes the networks are wrapped in DistributedDataParallel
+and each rank takes its share of every epoch's batches (standard torch.distributed API).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import random
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from slam.errors import ConfigError, SlamError
+from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
+from vo.ddn import declarative_pose
+from vo.geometry import backproject
+from vo.lie import se3_log
+from vo.odometry import StereoOdometry, VOConfig
+from vo.residuals import PoseProblem
+from vo.weights import WeightInputs, WeightNetworks, network_inputs, sample_weights
+
+log = logging.getLogger("slam.train")
+
+
+@dataclass
+class TrainDataConfig:
+    """Where the training pairs come from.
+
+    Attributes:
+        scenarios, seeds: synthetic sequences generated for training (every scenario x seed).
+            Keep these seeds apart from every evaluation seed (tools/benchmark_scenarios.py).
+        frames: frames per synthetic sequence.
+        width, height: image size of training (and of the checkpoint's intended use).
+        sequences: extra folders with ground truth (any supported layout).
+        cache_dir: generated sequences and cached pairs.
+        pairs_per_sequence: pairs drawn per sequence.
+        max_gap: pairs are 1..max_gap frames apart.
+        moving_threshold_mm, moving_threshold_deg: a pair whose ground-truth motion exceeds either
+            is "moving", else "static"; the two classes are balanced.
+        pixels_per_pair: pose-problem pixels kept per pair.
+    """
+
+    scenarios: list = field(default_factory=lambda: ["rigid", "breathing", "scanning", "deforming", "loop"])
+    seeds: list = field(default_factory=lambda: [1000, 1001, 1002, 1003])
+    frames: int = 80
+    width: int = 320
+    height: int = 256
+    sequences: list = field(default_factory=list)
+    cache_dir: str = "cache/train"
+    pairs_per_sequence: int = 60
+    max_gap: int = 5
+    moving_threshold_mm: float = 0.1
+    moving_threshold_deg: float = 0.1
+    pixels_per_pair: int = 4096
+
+
+@dataclass
+class OptimConfig:
+    """Optimisation.
+
+    Attributes:
+        epochs: maximum epochs.
+        batch_size: pairs per step.
+        lr: Adam learning rate.
+        patience: epochs without validation improvement before stopping.
+        val_fraction: share of pairs held out for validation.
+        seed: seeds sampling, splitting, initialisation and shuffling.
+        grad_tol: the forward pass must reach |grad f| / f below this to contribute a gradient.
+        threads: torch threads (0 = torch's default).
+    """
+
+    epochs: int = 40
+    batch_size: int = 8
+    lr: float = 3e-4
+    patience: int = 6
+    val_fraction: float = 0.2
+    seed: int = 0
+    grad_tol: float = 1e-3
+    threads: int = 0
+
+
+@dataclass
+class TrainConfig:
+    """Everything ``slam train`` needs."""
+
+    residuals: str = "2d3d"
+    downscale: int = 8
+    base: int = 16
+    data: TrainDataConfig = field(default_factory=TrainDataConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    correspondence: CorrespondenceConfig = field(default_factory=CorrespondenceConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    solver: SolverConfig = field(default_factory=lambda: SolverConfig(max_iters=15, step_tol=1e-10))
+
+
+def load_train_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:
+    """Defaults, then the YAML file, then ``key=value`` overrides, validated like the run config."""
+    from slam.config import _merge
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: training config not found")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError:
+        raise ConfigError(f"{path}: not valid YAML") from None
+    cfg = TrainConfig()
+    _merge(cfg, data, "", str(path))
+    for item in overrides or []:
+        if "=" not in item:
+            raise ConfigError(f"--set {item}: expected key=value")
+        key, raw = item.split("=", 1)
+        nested: dict = {}
+        cur = nested
+        parts = key.split(".")
+        for part in parts[:-1]:
+            cur = cur.setdefault(part, {})
+        cur[parts[-1]] = yaml.safe_load(raw)
+        _merge(cfg, nested, "", "--set")
+    if cfg.residuals not in ("2d3d", "2d", "3d"):
+        raise ConfigError(f"{path}: 'residuals' must be one of 2d3d, 2d, 3d")
+    return cfg
+
+
+# ------------------------------------------------------------------------------------- data
+def training_sequences(cfg: TrainConfig, progress: bool = True) -> list[Path]:
+    """The training sequence folders, generating missing synthetic ones into the cache."""
+    from slam.synth import generate
+
+    root = Path(cfg.data.cache_dir) / "sequences"
+    paths = []
+    for scenario in cfg.data.scenarios:
+        for seed in cfg.data.seeds:
+            out = root / f"{scenario}_s{seed}_{cfg.data.width}x{cfg.data.height}_n{cfg.data.frames}"
+            if not (out / "groundtruth.txt").is_file():
+                log.info("generating %s", out)
+                generate(out, scenario, frames=cfg.data.frames, size=(cfg.data.width, cfg.data.height), seed=seed,
+                         progress=progress)
+            paths.append(out)
+    paths += [Path(p) for p in cfg.data.sequences]
+    return paths
+
+
+def _relative_rect(gt: np.ndarray, R1: np.ndarray, i: int, j: int) -> np.ndarray:
+    """Ground-truth transform from rectified camera j to rectified camera i (mm)."""
+    M = np.eye(4)
+    M[:3, :3] = R1
+    return M @ np.linalg.inv(gt[i]) @ gt[j] @ M.T
+
+
+def sample_pairs(gt: np.ndarray, R1: np.ndarray, cfg: TrainDataConfig, rng: random.Random) -> list[tuple[int, int, bool]]:
+    """Draw ``(reference i, current j, moving)`` pairs balanced between moving and static camera."""
+    moving, static = [], []
+    for i in range(len(gt)):
+        for gap in range(1, cfg.max_gap + 1):
+            j = i + gap
+            if j >= len(gt):
+                break
+            T = _relative_rect(gt, R1, i, j)
+            angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)))
+            is_moving = np.linalg.norm(T[:3, 3]) > cfg.moving_threshold_mm or angle > cfg.moving_threshold_deg
+            (moving if is_moving else static).append((i, j, is_moving))
+    n = cfg.pairs_per_sequence
+    if moving and static:
+        picks = rng.sample(moving, min(n // 2, len(moving))) + rng.sample(static, min(n - n // 2, len(static)))
+    else:
+        pool = moving or static
+        picks = rng.sample(pool, min(n, len(pool)))
+    return sorted(picks)
+
+
+def _cache_key(cfg: TrainConfig, path: Path) -> str:
+    relevant = {"seq": str(path.resolve()), "data": asdict(cfg.data), "corr": asdict(cfg.correspondence),
+                "depth": asdict(cfg.depth), "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 1}
+    return hashlib.sha1(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:12]
+
+
+def build_pair_samples(path: Path, cfg: TrainConfig, rng: random.Random) -> list[dict]:
+    """Compute (or load from the cache) the samples of one sequence."""
+    from slam.datasets import DataConfig, open_dataset
+
+    cache = Path(cfg.data.cache_dir) / "pairs" / f"{path.name}_{_cache_key(cfg, path)}.pt"
+    if cache.is_file():
+        return torch.load(cache, weights_only=False)
+    dataset = open_dataset(path, DataConfig(width=cfg.data.width, height=cfg.data.height))
+    if dataset.gt_poses is None:
+        raise SlamError(f"{path}: training needs ground truth (groundtruth.txt)")
+    vo_cfg = VOConfig(correspondence=cfg.correspondence, depth=cfg.depth, solver=cfg.solver,
+                      weights=WeightsConfig(mode="constant"))
+    odo = StereoOdometry(dataset.camera, vo_cfg)
+    dmax = cfg.depth.max_depth_mm
+    H, W = dataset.camera.height, dataset.camera.width
+    views: dict[int, object] = {}
+
+    def view(k):
+        if k not in views:
+            f = dataset.frame(k)
+            views[k] = odo.make_view(f.left, f.right, f.mask)
+        return views[k]
+
+    samples = []
+    g = torch.Generator().manual_seed(rng.randrange(2**31))
+    for i, j, moving in sample_pairs(dataset.gt_poses, dataset.R1, cfg.data, rng):
+        ref, cur = view(i), view(j)
+        flow = odo._flow(odo.temporal_flow, cur.image, cur.gray, ref.image, ref.gray)
+        target, valid, valid3, points_ref = odo.build_problem(cur, ref, flow)
+        _, x3 = network_inputs(WeightInputs(cur.image, cur.depth / dmax, flow, cur.parallax,
+                                            ref.image, ref.depth / dmax, ref.parallax, valid), cfg.downscale)
+        idx = valid.flatten().nonzero().squeeze(1)
+        n = cfg.data.pixels_per_pair
+        if idx.numel() < 64:
+            continue
+        idx = idx[torch.randperm(idx.numel(), generator=g)[:n]]
+        pad = n - idx.numel()
+        keep = torch.ones(n, dtype=torch.bool)
+        if pad > 0:
+            keep[idx.numel():] = False
+            idx = torch.cat([idx, idx[:1].expand(pad)])
+        pts = backproject(cur.depth / dmax, odo.K).flatten(2)[0][:, idx]
+        T = torch.as_tensor(_relative_rect(dataset.gt_poses, dataset.R1, i, j))
+        T[:3, 3] /= dmax
+        pix = torch.stack([idx % W, idx // W]).float()
+        samples.append({
+            "x3": x3[0].half(),
+            "pix": pix,
+            "points_cur": pts.float(),
+            "target": target.flatten(2)[0][:, idx].float(),
+            "points_ref": points_ref.flatten(2)[0][:, idx].float(),
+            "valid2": keep & valid.flatten()[idx],
+            "valid3": keep & valid3.flatten()[idx],
+            "p_gt": se3_log(T[None])[0].float(),
+            "K": odo.K.float(),
+            "size": (H, W),
+            "moving": moving,
+            "source": f"{path.name}:{i}->{j}",
+        })
+        for k in [k for k in views if k < i]:
+            del views[k]  # pairs are sorted by i: earlier views are not needed again
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(samples, cache)
+    return samples
+
+
+def collate(samples: list[dict]) -> dict:
+    out = {k: torch.stack([s[k] for s in samples]) for k in
+           ("x3", "pix", "points_cur", "target", "points_ref", "valid2", "valid3", "p_gt", "K")}
+    out["x3"] = out["x3"].float()
+    out["size"] = samples[0]["size"]
+    return out
+
+
+# ------------------------------------------------------------------------------------- model
+def pose_from_batch(nets: WeightNetworks, batch: dict, cfg: TrainConfig, n2d: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weights from the networks, then the declarative pose: ``(p* (B, 6), ok (B,))``."""
+    H, W = batch["size"]
+    x3 = batch["x3"]
+    module = nets.module if hasattr(nets, "module") else nets
+    w2_low, w3_low = module.low_res(x3[:, :n2d], x3)
+    w2 = sample_weights(w2_low, batch["pix"], H, W) * batch["valid2"]
+    w3 = sample_weights(w3_low, batch["pix"], H, W) * batch["valid3"]
+    s2, s3 = PoseProblem.scales(H, W)
+    prob = PoseProblem(batch["points_cur"], batch["target"], batch["points_ref"], w2, w3, batch["K"], s2, s3)
+    return declarative_pose(w2, w3, prob, cfg.solver, cfg.optim.grad_tol)
+
+
+def l1_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+    """Mean over the successful samples of ``|p* - p_gt|_1`` (eq. 7)."""
+    per = (p - p_gt).abs().sum(1)
+    return (per * ok).sum() / ok.sum().clamp(min=1)
+
+
+def evaluate_loss(nets, samples: list[dict], cfg: TrainConfig, n2d: int, constant: bool = False) -> tuple[float, int]:
+    """Mean validation loss and the number of failed forward passes."""
+    total, count, failed = 0.0, 0, 0
+    bs = cfg.optim.batch_size
+    with torch.no_grad():
+        for k in range(0, len(samples), bs):
+            batch = collate(samples[k:k + bs])
+            if constant:
+                H, W = batch["size"]
+                s2, s3 = PoseProblem.scales(H, W)
+                w2 = batch["valid2"].float() * (1.0 if cfg.residuals != "3d" else 0.0)
+                w3 = batch["valid3"].float() * (1.0 if cfg.residuals != "2d" else 0.0)
+                prob = PoseProblem(batch["points_cur"], batch["target"], batch["points_ref"], w2, w3, batch["K"], s2, s3)
+                p, ok = declarative_pose(w2, w3, prob, cfg.solver, cfg.optim.grad_tol)
+            else:
+                p, ok = pose_from_batch(nets, batch, cfg, n2d)
+            per = (p - batch["p_gt"]).abs().sum(1)
+            total += float((per * ok).sum())
+            count += int(ok.sum())
+            failed += int((~ok).sum())
+    return total / max(count, 1), failed
+
+
+def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
+    """Run the training; returns the path of the best checkpoint."""
+    from tqdm import tqdm
+
+    from vo.weights import IN_CHANNELS_2D
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    if world > 1:
+        import torch.distributed as dist
+
+        dist.init_process_group(backend="nccl" if torch.cuda.is_available() else "gloo")
+    if cfg.optim.threads > 0:
+        torch.set_num_threads(cfg.optim.threads)
+    random.seed(cfg.optim.seed)
+    torch.manual_seed(cfg.optim.seed)
+    rng = random.Random(cfg.optim.seed)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    sequences = training_sequences(cfg, progress=progress and rank == 0)
+    samples: list[dict] = []
+    for path in tqdm(sequences, desc="pairs", disable=not progress or rank != 0, leave=False):
+        samples += build_pair_samples(path, cfg, rng)
+    if len(samples) < 2:
+        raise SlamError("training: fewer than 2 usable pairs")
+    order = list(range(len(samples)))
+    rng.shuffle(order)
+    n_val = max(1, int(round(cfg.optim.val_fraction * len(samples))))
+    val = [samples[k] for k in order[:n_val]]
+    train_set = [samples[k] for k in order[n_val:]]
+
+    nets = WeightNetworks(downscale=cfg.downscale, residuals=cfg.residuals, base=cfg.base)
+    model = nets
+    if world > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        model = DistributedDataParallel(nets)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.optim.lr)
+
+    baseline, _ = evaluate_loss(nets, val, cfg, IN_CHANNELS_2D, constant=True)
+    best_val, _ = evaluate_loss(nets, val, cfg, IN_CHANNELS_2D)
+    best_state = {k: v.clone() for k, v in nets.state_dict().items()}
+    best_epoch, stale = 0, 0
+    history = [{"epoch": 0, "val": best_val}]
+    bar = tqdm(range(1, cfg.optim.epochs + 1), desc=f"train {cfg.residuals}", disable=not progress or rank != 0)
+    bar.set_postfix(val=f"{best_val:.5f}", const=f"{baseline:.5f}")
+    t0 = time.time()
+    for epoch in bar:
+        nets.train()
+        perm = list(range(len(train_set)))
+        random.Random(cfg.optim.seed + epoch).shuffle(perm)
+        perm = perm[rank::world]
+        losses, failed = [], 0
+        for k in range(0, len(perm), cfg.optim.batch_size):
+            batch = collate([train_set[m] for m in perm[k:k + cfg.optim.batch_size]])
+            p, ok = pose_from_batch(model, batch, cfg, IN_CHANNELS_2D)
+            failed += int((~ok).sum())
+            loss = l1_pose_loss(p, batch["p_gt"], ok)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            losses.append(float(loss))
+        nets.eval()
+        val_loss, val_failed = evaluate_loss(nets, val, cfg, IN_CHANNELS_2D)
+        history.append({"epoch": epoch, "train": float(np.mean(losses)), "val": val_loss,
+                        "train_failed": failed, "val_failed": val_failed})
+        bar.set_postfix(train=f"{np.mean(losses):.5f}", val=f"{val_loss:.5f}", const=f"{baseline:.5f}")
+        if val_loss < best_val:
+            best_val, best_epoch, stale = val_loss, epoch, 0
+            best_state = {k: v.clone() for k, v in nets.state_dict().items()}
+        else:
+            stale += 1
+            if stale >= cfg.optim.patience:
+                break
+    ckpt_path = out_dir / f"weights_{cfg.residuals}.pt"
+    if rank == 0:
+        meta = {
+            "residuals": cfg.residuals, "downscale": cfg.downscale, "base": cfg.base,
+            "correspondence": asdict(cfg.correspondence), "image_size": [cfg.data.width, cfg.data.height],
+            "max_depth_mm": cfg.depth.max_depth_mm, "train_config": asdict(cfg),
+            "data": {"sequences": [str(p) for p in sequences], "pairs_train": len(train_set), "pairs_val": len(val)},
+            "best_epoch": best_epoch, "val_loss": best_val, "val_loss_constant_w1": baseline,
+            "history": history, "minutes": (time.time() - t0) / 60.0,
+        }
+        torch.save({"state_dict": best_state, "meta": meta}, ckpt_path)
+        (out_dir / f"train_log_{cfg.residuals}.json").write_text(json.dumps(meta, indent=2, default=str))
+        print(f"best validation loss {best_val:.5f} at epoch {best_epoch} (constant weights w=1: {baseline:.5f}); "
+              f"checkpoint {ckpt_path}")
+    if world > 1:
+        import torch.distributed as dist
+
+        dist.destroy_process_group()
+    return ckpt_path
+
+
+def train_from_config(config_path: str | Path, out: str | Path | None, overrides: list[str] | None = None) -> Path:
+    cfg = load_train_config(config_path, overrides)
+    return train(cfg, out or Path("runs") / "train")
