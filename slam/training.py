@@ -372,7 +372,7 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
             opt.zero_grad()
             loss.backward()
             opt.step()
-            losses.append(float(loss))
+            losses.append(float(loss.detach()))
         nets.eval()
         val_loss, val_failed = evaluate_loss(nets, val, cfg, IN_CHANNELS_2D)
         history.append({"epoch": epoch, "train": float(np.mean(losses)), "val": val_loss,
