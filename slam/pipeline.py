@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import resource
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -239,6 +240,7 @@ class Pipeline:
             "timings_ms": {k: float(np.mean(v)) for k, v in self.timings.items()},
             "mode": self.config.tracking.mode,
             "model_fallbacks": self.fallbacks,
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         }
         if result.interrupted:
             metrics["interrupted"] = True

@@ -193,8 +193,10 @@ def _cache_key(cfg: TrainConfig, path: Path) -> str:
     return hashlib.sha1(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:12]
 
 
-def build_pair_samples(path: Path, cfg: TrainConfig, rng: random.Random) -> list[dict]:
-    """Compute (or load from the cache) the samples of one sequence."""
+def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
+    """Compute (or load from the cache) the samples of one sequence (seeded by the training seed
+    and the sequence's name, so a cached and a fresh run draw the same pairs)."""
+    rng = random.Random(f"{cfg.optim.seed}:{path.name}")
     from slam.datasets import DataConfig, open_dataset
 
     cache = Path(cfg.data.cache_dir) / "pairs" / f"{path.name}_{_cache_key(cfg, path)}.pt"
@@ -267,6 +269,23 @@ def collate(samples: list[dict]) -> dict:
     return out
 
 
+def training_data(cfg: TrainConfig, progress: bool = True) -> tuple[list[Path], list[dict], list[dict]]:
+    """Sequences, training samples and validation samples (deterministic by ``optim.seed``)."""
+    from tqdm import tqdm
+
+    rng = random.Random(cfg.optim.seed)
+    sequences = training_sequences(cfg, progress=progress)
+    samples: list[dict] = []
+    for path in tqdm(sequences, desc="pairs", disable=not progress, leave=False):
+        samples += build_pair_samples(path, cfg)
+    if len(samples) < 2:
+        raise SlamError("training: fewer than 2 usable pairs")
+    order = list(range(len(samples)))
+    rng.shuffle(order)
+    n_val = max(1, int(round(cfg.optim.val_fraction * len(samples))))
+    return sequences, [samples[k] for k in order[n_val:]], [samples[k] for k in order[:n_val]]
+
+
 # ------------------------------------------------------------------------------------- model
 def pose_from_batch(nets: WeightNetworks, batch: dict, cfg: TrainConfig, n2d: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Weights from the networks, then the declarative pose: ``(p* (B, 6), ok (B,))``."""
@@ -287,18 +306,20 @@ def l1_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor) -> torch
     return (per * ok).sum() / ok.sum().clamp(min=1)
 
 
-def evaluate_loss(nets, samples: list[dict], cfg: TrainConfig, n2d: int, constant: bool = False) -> tuple[float, int]:
-    """Mean validation loss and the number of failed forward passes."""
+def evaluate_loss(nets, samples: list[dict], cfg: TrainConfig, n2d: int,
+                  constant: tuple[float, float] | None = None) -> tuple[float, int]:
+    """Mean L1 pose loss over ``samples`` and the number of failed forward passes, with the
+    networks' weights or, when ``constant = (w2d, w3d)`` is given, constant weights."""
     total, count, failed = 0.0, 0, 0
     bs = cfg.optim.batch_size
     with torch.no_grad():
         for k in range(0, len(samples), bs):
             batch = collate(samples[k:k + bs])
-            if constant:
+            if constant is not None:
                 H, W = batch["size"]
                 s2, s3 = PoseProblem.scales(H, W)
-                w2 = batch["valid2"].float() * (1.0 if cfg.residuals != "3d" else 0.0)
-                w3 = batch["valid3"].float() * (1.0 if cfg.residuals != "2d" else 0.0)
+                w2 = batch["valid2"].float() * (constant[0] if cfg.residuals != "3d" else 0.0)
+                w3 = batch["valid3"].float() * (constant[1] if cfg.residuals != "2d" else 0.0)
                 prob = PoseProblem(batch["points_cur"], batch["target"], batch["points_ref"], w2, w3, batch["K"], s2, s3)
                 p, ok = declarative_pose(w2, w3, prob, cfg.solver, cfg.optim.grad_tol)
             else:
@@ -326,21 +347,10 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
         torch.set_num_threads(cfg.optim.threads)
     random.seed(cfg.optim.seed)
     torch.manual_seed(cfg.optim.seed)
-    rng = random.Random(cfg.optim.seed)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
 
-    sequences = training_sequences(cfg, progress=progress and rank == 0)
-    samples: list[dict] = []
-    for path in tqdm(sequences, desc="pairs", disable=not progress or rank != 0, leave=False):
-        samples += build_pair_samples(path, cfg, rng)
-    if len(samples) < 2:
-        raise SlamError("training: fewer than 2 usable pairs")
-    order = list(range(len(samples)))
-    rng.shuffle(order)
-    n_val = max(1, int(round(cfg.optim.val_fraction * len(samples))))
-    val = [samples[k] for k in order[:n_val]]
-    train_set = [samples[k] for k in order[n_val:]]
+    sequences, train_set, val = training_data(cfg, progress=progress and rank == 0)
 
     nets = WeightNetworks(downscale=cfg.downscale, residuals=cfg.residuals, base=cfg.base)
     model = nets
@@ -350,7 +360,7 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
         model = DistributedDataParallel(nets)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.optim.lr)
 
-    baseline, _ = evaluate_loss(nets, val, cfg, IN_CHANNELS_2D, constant=True)
+    baseline, _ = evaluate_loss(nets, val, cfg, IN_CHANNELS_2D, constant=(1.0, 1.0))
     best_val, _ = evaluate_loss(nets, val, cfg, IN_CHANNELS_2D)
     best_state = {k: v.clone() for k, v in nets.state_dict().items()}
     best_epoch, stale = 0, 0

@@ -71,6 +71,9 @@ class SolverConfig:
         max_rotation_deg: a relative rotation larger than this is a failure.
         min_valid_pixels: fewer pixels with non-zero weight is a failure.
         init: ``identity`` or ``constant_velocity`` (start from the previous relative motion).
+        max_pixels: the solver uses at most this many valid pixels, evenly spaced over the valid
+            set (0 = all). Cost then no longer grows with the image size; see
+            tools/benchmark_speed.py for the accuracy it costs.
     """
 
     method: str = "lm"
@@ -82,6 +85,7 @@ class SolverConfig:
     max_rotation_deg: float = 15.0
     min_valid_pixels: int = 200
     init: str = "identity"
+    max_pixels: int = 0
 
 
 @dataclass

@@ -236,6 +236,7 @@ class StereoOdometry:
             w2d=w2d.flatten(1), w3d=w3d.flatten(1), K=self.K[None], s2=s2, s3=s3,
         ).compact()
         n_valid = int(prob.w2d.shape[1])
+        prob = prob.subsample(self.config.solver.max_pixels)
         scfg = self.config.solver
         init = None
         if T_init is not None:

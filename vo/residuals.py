@@ -69,6 +69,23 @@ class PoseProblem:
             w3d=self.w3d[:, idx],
         )
 
+    def subsample(self, max_pixels: int) -> "PoseProblem":
+        """Keep at most ``max_pixels`` columns, evenly spaced (deterministic). The weighted sums
+        are rescaled by ``N / kept`` so the objective keeps its magnitude."""
+        n = self.w2d.shape[1]
+        if max_pixels <= 0 or n <= max_pixels:
+            return self
+        idx = torch.linspace(0, n - 1, max_pixels, device=self.w2d.device).round().long()
+        scale = n / float(max_pixels)
+        return replace(
+            self,
+            points_cur=self.points_cur[:, :, idx],
+            target_px=self.target_px[:, :, idx],
+            points_ref=self.points_ref[:, :, idx],
+            w2d=self.w2d[:, idx] * scale,
+            w3d=self.w3d[:, idx] * scale,
+        )
+
     def to(self, dtype: torch.dtype) -> "PoseProblem":
         return replace(
             self,

@@ -1,0 +1,414 @@
+"""Rerun logging of a SLAM run (rerun-sdk 0.41): camera, images, depth, flow, weights, trajectories,
+the surfel map and per-frame metrics on a ``frame`` timeline, with a one-screen blueprint.
+
+This module imports rerun at import time; ``slam.runner.make_logger`` imports it only when a
+recording or a viewer is asked for.
+
+Units: the logged world is in metres, like ``map.ply`` and ``trajectory.txt`` (pose translations
+and map positions divided by 1000); depth images stay in mm with ``meter=1000``.
+
+Entity paths (``frame`` timeline, one entry per processed frame unless noted):
+
+- ``world``: view coordinates RDF (static).
+- ``world/camera``: Transform3D ``T_wc`` of the *rectified* left camera (m) and its Pinhole
+  (rectified ``K``, resolution, RDF; static, re-logged if the intrinsics change), so that every
+  image below lies in the camera's image plane and the depth is back-projected in 3D.
+- ``world/camera/image``: the rectified left image (uint8 RGB).
+- ``world/camera/depth``: DepthImage in mm (``meter=1000``).
+- ``world/camera/flow``: temporal flow, HSV colour-coded (not for the first frame).
+- ``world/camera/weights/w2d``, ``world/camera/weights/w3d``: weight maps, min..max of the frame
+  mapped through a viridis colour map (not for the first frame).
+- ``world/camera/valid``: SegmentationImage of the valid-depth mask (0 invalid, 1 valid).
+- ``world/trajectory/estimate``: LineStrips3D of the estimated positions so far (original left
+  camera, m); ``world/trajectory/ground_truth``: the same for the ground truth (when it exists).
+- ``world/map``: coloured Points3D of the stable surfels every ``map_every`` frames and at the end.
+- ``metrics/fps`` (from the second frame on), ``metrics/solver_iterations``,
+  ``metrics/solver_cost`` (when finite), ``metrics/translation_error_mm`` (with ground truth),
+  ``metrics/failed`` (0/1).
+"""
+from __future__ import annotations
+
+import logging
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+log = logging.getLogger("slam")
+
+TIMELINE = "frame"
+
+CAMERA = "world/camera"
+IMAGE = "world/camera/image"
+DEPTH = "world/camera/depth"
+FLOW = "world/camera/flow"
+W2D = "world/camera/weights/w2d"
+W3D = "world/camera/weights/w3d"
+VALID = "world/camera/valid"
+TRAJ_EST = "world/trajectory/estimate"
+TRAJ_GT = "world/trajectory/ground_truth"
+MAP = "world/map"
+METRICS = ("metrics/fps", "metrics/solver_iterations", "metrics/solver_cost",
+           "metrics/translation_error_mm", "metrics/failed")
+
+EST_COLOR = (255, 140, 0)
+GT_COLOR = (40, 200, 80)
+
+# viridis at 9 evenly spaced stops (enough for a smooth linear interpolation)
+_VIRIDIS = np.array([
+    [68, 1, 84], [71, 44, 122], [59, 81, 139], [44, 113, 142], [33, 144, 141],
+    [39, 173, 129], [92, 200, 99], [170, 220, 50], [253, 231, 37]], dtype=np.float32)
+
+
+# ------------------------------------------------------------------------------------------------
+# image helpers (numpy only)
+def _np(x: Any) -> np.ndarray:
+    """A tensor or array as a numpy array on the CPU."""
+    if hasattr(x, "detach"):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def _hw(x: Any) -> np.ndarray:
+    """``(1, 1, H, W)`` / ``(1, H, W)`` / ``(H, W)`` -> ``(H, W)``."""
+    a = _np(x)
+    while a.ndim > 2 and a.shape[0] == 1:
+        a = a[0]
+    if a.ndim != 2:
+        raise ValueError(f"expected a single-channel map, got shape {a.shape}")
+    return a
+
+
+def _hwc(x: Any, channels: int) -> np.ndarray:
+    """``(1, C, H, W)`` / ``(C, H, W)`` / ``(H, W, C)`` -> ``(H, W, C)``."""
+    a = _np(x)
+    while a.ndim > 3 and a.shape[0] == 1:
+        a = a[0]
+    if a.ndim != 3:
+        raise ValueError(f"expected a {channels}-channel map, got shape {a.shape}")
+    if a.shape[-1] == channels:
+        return a
+    if a.shape[0] == channels:
+        return np.moveaxis(a, 0, -1)
+    raise ValueError(f"expected a {channels}-channel map, got shape {a.shape}")
+
+
+def image_to_u8(image: Any) -> np.ndarray:
+    """A ``(1, 3, H, W)`` float image in [0, 1] (or an ``(H, W, 3)`` uint8 one) -> ``(H, W, 3)`` uint8."""
+    a = _hwc(image, 3)
+    if a.dtype == np.uint8:
+        return np.ascontiguousarray(a)
+    return np.ascontiguousarray((np.clip(np.nan_to_num(a.astype(np.float32)), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
+
+
+def _hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Vectorised HSV (all in [0, 1]) -> RGB float in [0, 1], shape ``h.shape + (3,)``."""
+    h6 = (h % 1.0) * 6.0
+    i = np.floor(h6).astype(np.int64) % 6
+    f = h6 - np.floor(h6)
+    p = v * (1.0 - s)
+    q = v * (1.0 - s * f)
+    t = v * (1.0 - s * (1.0 - f))
+    r = np.choose(i, [v, q, p, p, t, v])
+    g = np.choose(i, [t, v, v, q, p, p])
+    b = np.choose(i, [p, p, t, v, v, q])
+    return np.stack([r, g, b], axis=-1)
+
+
+def flow_to_rgb(flow: Any, max_magnitude: Optional[float] = None, percentile: float = 99.0) -> np.ndarray:
+    """Colour-code a flow field: direction -> hue, magnitude -> value (zero flow is black).
+
+    Args:
+        flow: ``(H, W, 2)``, ``(2, H, W)`` or ``(1, 2, H, W)`` (tensor or array), pixels.
+        max_magnitude: the magnitude shown at full brightness; default: a robust maximum (the
+            ``percentile`` of the finite magnitudes).
+
+    Returns:
+        ``(H, W, 3)`` uint8 RGB.
+    """
+    f = _hwc(flow, 2).astype(np.float32)
+    u, v = f[..., 0], f[..., 1]
+    mag = np.hypot(u, v)
+    finite = np.isfinite(mag)
+    mag = np.where(finite, mag, 0.0)
+    if max_magnitude is None:
+        vals = mag[finite & (mag > 0)]
+        max_magnitude = float(np.percentile(vals, percentile)) if vals.size else 0.0
+    max_magnitude = max(float(max_magnitude), 1e-6)
+    hue = (np.arctan2(v, u) / (2.0 * np.pi)) % 1.0
+    hue = np.where(finite, hue, 0.0)
+    value = np.clip(mag / max_magnitude, 0.0, 1.0)
+    rgb = _hsv_to_rgb(hue, np.ones_like(value), value)
+    return (rgb * 255.0 + 0.5).astype(np.uint8)
+
+
+def colormap_u8(values: Any, lo: Optional[float] = None, hi: Optional[float] = None) -> np.ndarray:
+    """A scalar map normalised per frame (min -> dark, max -> bright) through viridis.
+
+    Args:
+        values: ``(H, W)`` (or with leading unit dims), tensor or array; non-finite -> black.
+        lo, hi: the range; default the finite min and max of the map.
+
+    Returns:
+        ``(H, W, 3)`` uint8 RGB.
+    """
+    a = _hw(values).astype(np.float32)
+    finite = np.isfinite(a)
+    vals = a[finite]
+    if lo is None:
+        lo = float(vals.min()) if vals.size else 0.0
+    if hi is None:
+        hi = float(vals.max()) if vals.size else 1.0
+    x = np.clip((a - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    x = np.where(finite, x, 0.0) * (len(_VIRIDIS) - 1)
+    i0 = np.minimum(np.floor(x).astype(np.int64), len(_VIRIDIS) - 2)
+    t = (x - i0)[..., None]
+    rgb = _VIRIDIS[i0] * (1.0 - t) + _VIRIDIS[i0 + 1] * t
+    rgb[~finite] = 0.0
+    return (rgb + 0.5).astype(np.uint8)
+
+
+def _strip(positions: np.ndarray, color: tuple, label: str) -> "rr.LineStrips3D":
+    """One polyline through ``(N, 3)`` positions (m), drawn 2 UI points wide."""
+    return rr.LineStrips3D([np.asarray(positions, dtype=np.float32).reshape(-1, 3)], colors=[color],
+                           labels=[label], show_labels=False, radii=rr.Radius.ui_points(2.0))
+
+
+# ------------------------------------------------------------------------------------------------
+def make_blueprint() -> rrb.Blueprint:
+    """One screen: the 3D world (left), the 2D maps (middle, 2 x 3 grid), the metrics (bottom)."""
+    world = rrb.Spatial3DView(
+        origin="world", name="world",
+        contents=["+ $origin/**", f"- {FLOW}", f"- {W2D}", f"- {W3D}", f"- {VALID}"],
+    )
+    maps = rrb.Grid(
+        rrb.Spatial2DView(origin=IMAGE, name="image"),
+        rrb.Spatial2DView(origin=DEPTH, name="depth"),
+        rrb.Spatial2DView(origin=FLOW, name="flow"),
+        rrb.Spatial2DView(origin=W2D, name="w2d"),
+        rrb.Spatial2DView(origin=W3D, name="w3d"),
+        rrb.Spatial2DView(origin=VALID, name="valid"),
+        grid_columns=3,
+    )
+    metrics = rrb.Grid(
+        rrb.TimeSeriesView(origin="metrics/fps", name="fps"),
+        rrb.TimeSeriesView(origin="metrics/translation_error_mm", name="translation error (mm)"),
+        rrb.TimeSeriesView(origin="metrics/solver_iterations", name="solver iterations"),
+        rrb.TimeSeriesView(origin="metrics/solver_cost", name="solver cost"),
+        rrb.TimeSeriesView(origin="metrics/failed", name="failed"),
+        grid_columns=5,
+    )
+    return rrb.Blueprint(
+        rrb.Vertical(
+            rrb.Horizontal(world, maps, column_shares=[2, 3]),
+            metrics,
+            row_shares=[3, 1],
+        ),
+        rrb.TimePanel(expanded=True),
+        collapse_panels=False,
+    )
+
+
+class RerunLogger:
+    """Logs a SLAM run to a rerun recording (``.rrd``) and/or a spawned viewer.
+
+    Args:
+        config: ``slam.config.LoggingConfig`` (``rerun`` path, ``spawn``, ``map_every``).
+        camera: the rectified ``StereoCamera`` (intrinsics of the logged images).
+        name: the recording's name (the sequence).
+        gt_poses: ``(N, 4, 4)`` ground-truth ``T_wc`` of the original left camera, mm, of the
+            selected frames (index ``k``), or None.
+        R1: ``(3, 3)`` rectifying rotation of the left camera (kept for reference; positions of the
+            original and rectified cameras coincide).
+    """
+
+    def __init__(self, config, camera, name: str = "endoslam", gt_poses: Optional[np.ndarray] = None,
+                 R1: Optional[np.ndarray] = None):
+        self.config = config
+        self.camera = camera
+        self.name = str(name)
+        self.gt_poses = None if gt_poses is None else np.asarray(gt_poses, dtype=np.float64)
+        self.R1 = None if R1 is None else np.asarray(R1, dtype=np.float64)
+        self.map_every = int(getattr(config, "map_every", 0) or 0)
+        self.positions: list[np.ndarray] = []  # estimated positions so far, m (the only history kept)
+        self._last_k: Optional[int] = None
+        self._last_time: Optional[float] = None
+        self._pinhole_key: Optional[tuple] = None
+        self._gt_logged: Optional[np.ndarray] = None  # the last ground-truth strip logged, m
+        self._closed = False
+        self.path: Optional[Path] = Path(config.rerun) if getattr(config, "rerun", "") else None
+        self.rec = rr.RecordingStream("endoslam", recording_id=uuid.uuid4())
+        if not self._connect(make_blueprint()):
+            # nothing would ever read the data: do not buffer a whole run in memory
+            log.warning("rerun: no recording path and no viewer: rerun logging is off")
+            self._closed = True
+            self.rec.disconnect()
+            return
+        self.rec.send_recording_name(self.name)
+        self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
+        self.rec.log(VALID, rr.AnnotationContext([(0, "invalid", (0, 0, 0)), (1, "valid", (255, 255, 255))]),
+                     static=True)
+        for path, color in (("metrics/fps", (80, 160, 255)), ("metrics/translation_error_mm", (255, 80, 80)),
+                            ("metrics/solver_iterations", (200, 200, 200)), ("metrics/solver_cost", (255, 200, 0)),
+                            ("metrics/failed", (255, 0, 0))):
+            self.rec.log(path, rr.SeriesLines(colors=[color], names=[path.split("/")[-1]]), static=True)
+        self._log_pinhole(camera)
+
+    # -------------------------------------------------------------------------------- sinks
+    def _connect(self, blueprint: rrb.Blueprint) -> bool:
+        """Attach the sinks (viewer and/or file); False when there is none."""
+        spawn = bool(getattr(self.config, "spawn", False))
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        if spawn:
+            try:
+                port = 9876
+                rr.spawn(port=port, connect=False, recording=self.rec)
+                sinks = [rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy")]
+                if self.path is not None:
+                    sinks.append(rr.FileSink(self.path))
+                self.rec.set_sinks(*sinks, default_blueprint=blueprint)
+                return True
+            except Exception as err:  # no viewer binary / no display: keep the file
+                log.warning("could not spawn the rerun viewer (%s)%s", err,
+                            f"; recording to {self.path} only" if self.path else "")
+        if self.path is not None:
+            self.rec.save(self.path, default_blueprint=blueprint)
+            return True
+        return False
+
+    # -------------------------------------------------------------------------------- per frame
+    def _log_pinhole(self, camera) -> None:
+        if camera is None:
+            return
+        K = np.asarray(camera.K, dtype=np.float64)
+        key = (tuple(np.round(K.ravel(), 9)), int(camera.width), int(camera.height))
+        if key == self._pinhole_key:
+            return
+        self._pinhole_key = key
+        self.rec.log(CAMERA, rr.Pinhole(image_from_camera=K, resolution=[int(camera.width), int(camera.height)],
+                                        camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.01),
+                     static=True)
+
+    def _gt(self, k: int) -> Optional[np.ndarray]:
+        if self.gt_poses is None or k >= len(self.gt_poses):
+            return None
+        T = self.gt_poses[k]
+        return T if np.all(np.isfinite(T[:3, 3])) else None
+
+    def log_frame(self, k: int, frame, view, track, record, map=None, camera=None,
+                  pose_rect: Optional[np.ndarray] = None) -> None:
+        """Log one processed frame ``k`` (see the module doc for what goes where)."""
+        if self._closed:
+            return
+        rec = self.rec
+        now = time.perf_counter()
+        rec.set_time(TIMELINE, sequence=int(k))
+        self._log_pinhole(camera if camera is not None else self.camera)
+
+        # camera (rectified pose, m)
+        T = np.asarray(pose_rect if pose_rect is not None else record.pose, dtype=np.float64)
+        rec.log(CAMERA, rr.Transform3D(translation=T[:3, 3] / 1000.0, mat3x3=T[:3, :3]))
+
+        # images
+        rec.log(IMAGE, rr.Image(image_to_u8(view.image)))
+        depth = _hw(view.depth).astype(np.float32)
+        rec.log(DEPTH, rr.DepthImage(np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0), meter=1000.0))
+        rec.log(VALID, rr.SegmentationImage(_hw(view.valid).astype(np.uint8)))
+        if track is not None:
+            if getattr(track, "flow", None) is not None:
+                rec.log(FLOW, rr.Image(flow_to_rgb(track.flow)))
+            if getattr(track, "w2d", None) is not None:
+                rec.log(W2D, rr.Image(colormap_u8(track.w2d)))
+            if getattr(track, "w3d", None) is not None:
+                rec.log(W3D, rr.Image(colormap_u8(track.w3d)))
+
+        # trajectories (original left camera, m)
+        pose = np.asarray(record.pose, dtype=np.float64)
+        self.positions.append(pose[:3, 3] / 1000.0)
+        rec.log(TRAJ_EST, _strip(np.stack(self.positions), EST_COLOR, "estimate"))
+        gt = self._gt(k)
+        if self.gt_poses is not None:
+            gt_pos = self.gt_poses[: k + 1, :3, 3] / 1000.0
+            gt_pos = gt_pos[np.all(np.isfinite(gt_pos), axis=1)]
+            rec.log(TRAJ_GT, _strip(gt_pos, GT_COLOR, "ground truth"))
+            self._gt_logged = gt_pos
+
+        # map
+        if map is not None and self.map_every > 0 and k % self.map_every == 0:
+            self._log_map(map)
+
+        # metrics
+        if self._last_time is not None:
+            dt = now - self._last_time
+            if dt > 0:
+                rec.log("metrics/fps", rr.Scalars(1.0 / dt))
+        elif track is not None and getattr(track, "timings_ms", None):
+            total = float(sum(track.timings_ms.values()))
+            if total > 0:
+                rec.log("metrics/fps", rr.Scalars(1000.0 / total))
+        rec.log("metrics/solver_iterations", rr.Scalars(float(getattr(record, "iterations", 0) or 0)))
+        cost = float(getattr(record, "cost", float("nan")))
+        if np.isfinite(cost):
+            rec.log("metrics/solver_cost", rr.Scalars(cost))
+        if gt is not None:
+            rec.log("metrics/translation_error_mm", rr.Scalars(float(np.linalg.norm(pose[:3, 3] - gt[:3, 3]))))
+        rec.log("metrics/failed", rr.Scalars(1.0 if record.failed else 0.0))
+
+        self._last_k = int(k)
+        self._last_time = now
+
+    def _log_map(self, map) -> None:
+        pts = map.points(stable_only=True)
+        pos = np.asarray(pts.get("positions", np.zeros((0, 3))), dtype=np.float32).reshape(-1, 3) / 1000.0
+        colors = pts.get("colors")
+        if colors is not None:
+            colors = np.asarray(colors, dtype=np.float32).reshape(-1, 3)
+            colors = (np.clip(colors, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        radii = pts.get("radii")
+        radii = None if radii is None else np.asarray(radii, dtype=np.float32).reshape(-1) / 1000.0
+        self.rec.log(MAP, rr.Points3D(pos, colors=colors, radii=radii))
+
+    # -------------------------------------------------------------------------------- end
+    def log_final(self, map, est_poses: Optional[np.ndarray], gt_poses: Optional[np.ndarray] = None) -> None:
+        """The final map and the full trajectories (at the last frame), then close."""
+        if self._closed:
+            return
+        k = self._last_k if self._last_k is not None else max(len(est_poses) - 1 if est_poses is not None else 0, 0)
+        self.rec.set_time(TIMELINE, sequence=int(k))
+        if map is not None:
+            self._log_map(map)
+        # the per-frame strips already hold the full trajectories when every frame was logged:
+        # re-log only what differs, so that per-frame entities keep one entry per frame
+        if est_poses is not None and len(est_poses):
+            est = np.asarray(est_poses, dtype=np.float64)[:, :3, 3] / 1000.0
+            if len(est) != len(self.positions) or not np.allclose(est, np.stack(self.positions)):
+                self.rec.log(TRAJ_EST, _strip(est, EST_COLOR, "estimate"))
+        if gt_poses is not None and len(gt_poses):
+            gt = np.asarray(gt_poses, dtype=np.float64)[:, :3, 3] / 1000.0
+            gt = gt[np.all(np.isfinite(gt), axis=1)]
+            if self._gt_logged is None or len(gt) != len(self._gt_logged) or not np.allclose(gt, self._gt_logged):
+                self.rec.log(TRAJ_GT, _strip(gt, GT_COLOR, "ground truth"))
+        self.close()
+
+    def close(self) -> None:
+        """Flush and close every sink (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.rec.flush()
+        except Exception as err:  # e.g. the viewer was closed or never came up: the file is complete
+            log.warning("rerun: %s", err)
+        finally:
+            self.rec.disconnect()
+
+    def __enter__(self) -> "RerunLogger":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,350 @@
+"""Rerun logging (slam/rerun_log.py): entities and per-frame counts in a saved .rrd, the flow and
+weight colour codes, the blueprint, and that rerun stays unimported unless asked for."""
+from __future__ import annotations
+
+import collections
+import re
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+rr = pytest.importorskip("rerun")
+
+from slam.config import LoggingConfig, SlamConfig  # noqa: E402
+from slam.pipeline import FrameRecord  # noqa: E402
+from slam.rerun_log import RerunLogger, colormap_u8, flow_to_rgb  # noqa: E402
+from vo.camera import StereoCamera  # noqa: E402
+from vo.odometry import TrackResult, View  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+RERUN_CLI = Path(sys.executable).parent / "rerun"
+H, W, N = 48, 64, 5
+
+IMAGE = "/world/camera/image"
+DEPTH = "/world/camera/depth"
+FLOW = "/world/camera/flow"
+W2D = "/world/camera/weights/w2d"
+W3D = "/world/camera/weights/w3d"
+VALID = "/world/camera/valid"
+CAMERA = "/world/camera"
+EST = "/world/trajectory/estimate"
+GT = "/world/trajectory/ground_truth"
+MAP = "/world/map"
+
+
+def _camera() -> StereoCamera:
+    K = np.array([[60.0, 0.0, 31.5], [0.0, 60.0, 23.5], [0.0, 0.0, 1.0]])
+    return StereoCamera(K=K, baseline_mm=4.0, width=W, height=H)
+
+
+def _pose(k: int) -> np.ndarray:
+    T = np.eye(4)
+    c, s = np.cos(0.02 * k), np.sin(0.02 * k)
+    T[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    T[:3, 3] = [2.0 * k, -0.5 * k, 1.0 + 0.3 * k]  # mm
+    return T
+
+
+class FakeMap:
+    """The part of mapping.SurfelMap the logger uses."""
+
+    def __init__(self, n: int = 200):
+        rng = np.random.default_rng(1)
+        self.pos = rng.normal(size=(n, 3)) * 10.0 + [0.0, 0.0, 80.0]
+        self.col = rng.random((n, 3))
+
+    def points(self, stable_only: bool = True) -> dict:
+        n = len(self.pos)
+        return {"positions": self.pos, "normals": np.tile([0.0, 0.0, -1.0], (n, 1)), "colors": self.col,
+                "radii": np.full(n, 0.5), "confidence": np.ones(n), "t_init": np.zeros(n), "t_last": np.zeros(n)}
+
+    def __len__(self) -> int:
+        return len(self.pos)
+
+
+def _view(gen: torch.Generator) -> View:
+    depth = 50.0 + 50.0 * torch.rand(1, 1, H, W, generator=gen)
+    valid = torch.rand(1, 1, H, W, generator=gen) > 0.2
+    return View(image=torch.rand(1, 3, H, W, generator=gen), gray=np.zeros((H, W), np.uint8),
+                depth=torch.where(valid, depth, torch.zeros_like(depth)), valid=valid,
+                parallax=torch.zeros(1, 2, H, W))
+
+
+def _track(gen: torch.Generator, failed: bool) -> TrackResult:
+    return TrackResult(relative=np.eye(4), failed=failed, reason="diverged" if failed else "", iterations=7,
+                       cost=0.25, valid_pixels=H * W, flow=torch.randn(1, 2, H, W, generator=gen) * 3.0,
+                       w2d=torch.rand(1, 1, H, W, generator=gen), w3d=torch.rand(1, 1, H, W, generator=gen),
+                       timings_ms={"flow": 10.0, "solver": 5.0})
+
+
+def _run_logger(path: Path, gt: bool = True, map_every: int = 2) -> dict:
+    """Log N frames (frame 3 failed) and the final map into ``path``; return what was logged."""
+    gen = torch.Generator().manual_seed(0)
+    camera = _camera()
+    gt_poses = np.stack([_pose(k) for k in range(N)]) if gt else None
+    R1 = np.eye(3)
+    logger = RerunLogger(LoggingConfig(rerun=str(path), map_every=map_every), camera, name="fake_seq",
+                         gt_poses=gt_poses, R1=R1)
+    fmap = FakeMap()
+    est = []
+    for k in range(N):
+        failed = k == 3
+        track = None if k == 0 else _track(gen, failed)
+        pose = _pose(k)
+        pose[:3, 3] += 0.1 * k  # drift: the first estimate is the first ground-truth pose
+        est.append(pose)
+        record = FrameRecord(index=10 + k, timestamp=0.1 * k, pose=pose, failed=failed,
+                             reason="diverged" if failed else "", reference="first" if k == 0 else "previous_frame",
+                             iterations=0 if k == 0 else 7, cost=float("nan") if k == 0 else 0.25)
+        frame = SimpleNamespace(index=10 + k, timestamp=0.1 * k, left=None, right=None, mask=None)
+        logger.log_frame(k, frame, _view(gen), track, record, fmap, camera, pose)
+    est = np.stack(est)
+    logger.log_final(fmap, est, gt_poses)
+    assert path.is_file() and path.stat().st_size > 0
+    return {"est": est, "gt": gt_poses, "map": fmap}
+
+
+def _frames_per_entity(path: Path) -> dict:
+    """{(entity, component): sorted list of `frame` values of the non-null rows} of the recording,
+    read back with rerun's own chunk reader (rows summed over however many chunks were written)."""
+    from rerun.chunk import RrdReader
+
+    out = collections.defaultdict(list)
+    for chunk in RrdReader(path).stream():
+        if chunk.is_static or "frame" not in chunk.timeline_names:
+            continue
+        batch = chunk.to_record_batch()
+        frames = batch.column("frame").to_pylist()
+        for name in batch.schema.names:
+            if ":" not in name:
+                continue  # row id / timelines
+            col = batch.column(name)
+            out[(chunk.entity_path, name)] += [f for f, ok in zip(frames, col.is_valid().to_pylist()) if ok]
+    return {key: sorted(v) for key, v in out.items()}
+
+
+def _static_components(path: Path) -> dict:
+    from rerun.chunk import RrdReader
+
+    out = collections.defaultdict(set)
+    for chunk in RrdReader(path).stream():
+        if chunk.is_static:
+            out[chunk.entity_path] |= {n for n in chunk.to_record_batch().schema.names if ":" in n}
+    return out
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    path = tmp_path_factory.mktemp("rerun") / "run.rrd"
+    logged = _run_logger(path)
+    return path, logged
+
+
+def test_rrd_print_lists_entities(recording):
+    path, _ = recording
+    assert RERUN_CLI.is_file(), f"rerun CLI not found at {RERUN_CLI}"
+    res = subprocess.run([str(RERUN_CLI), "rrd", "print", str(path)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    # summary lines: "Chunk(<id>) with <n> rows (<size>) - <entity> - data columns: [<Archetype:field> ...]"
+    rows = collections.Counter()
+    for m in re.finditer(r"^Chunk\(\S+\) with (\d+) rows \([^)]*\) - (\S+) - data columns: \[([^\]]*)\]", res.stdout,
+                         re.MULTILINE):
+        for column in m.group(3).split():
+            rows[(m.group(2), column)] += int(m.group(1))
+    entities = {entity for entity, _ in rows}
+    for entity in (IMAGE, DEPTH, FLOW, W2D, W3D, VALID, CAMERA, EST, GT, MAP, "/metrics/fps",
+                   "/metrics/solver_iterations", "/metrics/solver_cost", "/metrics/translation_error_mm",
+                   "/metrics/failed"):
+        assert entity in entities, f"{entity} not in the recording: {sorted(entities)}"
+    # the same counts as the chunk reader below, from the CLI's row counts
+    assert rows[(IMAGE, "Image:buffer")] == N
+    assert rows[(DEPTH, "DepthImage:buffer")] == N
+    assert rows[(FLOW, "Image:buffer")] == N - 1
+    assert rows[(CAMERA, "Transform3D:translation")] == N
+    assert rows[(CAMERA, "Pinhole:image_from_camera")] == 1
+    assert rows[(EST, "LineStrips3D:strips")] == N
+    assert rows[(GT, "LineStrips3D:strips")] == N
+    # verify: the file is a complete, loadable recording
+    res = subprocess.run([str(RERUN_CLI), "rrd", "verify", str(path)], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+
+
+def test_one_entry_per_processed_frame(recording):
+    path, _ = recording
+    frames = _frames_per_entity(path)
+    every = list(range(N))
+    tracked = list(range(1, N))  # the first frame has no flow / weights
+    assert frames[(IMAGE, "Image:buffer")] == every
+    assert frames[(DEPTH, "DepthImage:buffer")] == every
+    assert frames[(DEPTH, "DepthImage:meter")] == every
+    assert frames[(VALID, "SegmentationImage:buffer")] == every
+    assert frames[(CAMERA, "Transform3D:translation")] == every
+    assert frames[(EST, "LineStrips3D:strips")] == every
+    assert frames[(GT, "LineStrips3D:strips")] == every
+    assert frames[(FLOW, "Image:buffer")] == tracked
+    assert frames[(W2D, "Image:buffer")] == tracked
+    assert frames[(W3D, "Image:buffer")] == tracked
+    assert frames[("/metrics/failed", "Scalars:scalars")] == every
+    assert frames[("/metrics/solver_iterations", "Scalars:scalars")] == every
+    assert frames[("/metrics/translation_error_mm", "Scalars:scalars")] == every
+    assert frames[("/metrics/solver_cost", "Scalars:scalars")] == tracked  # NaN cost of frame 0 skipped
+    assert frames[("/metrics/fps", "Scalars:scalars")] == tracked
+    # map every 2 frames (0, 2, 4) and the final map (at the last frame)
+    assert frames[(MAP, "Points3D:positions")] == [0, 2, 4, 4]
+    static = _static_components(path)
+    assert "Pinhole:image_from_camera" in static["/world/camera"]
+
+
+def _column(path: Path, entity: str, name: str) -> list:
+    from rerun.chunk import RrdReader
+
+    rows = []
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path == entity and not chunk.is_static:
+            batch = chunk.to_record_batch()
+            if name in batch.schema.names:
+                rows += list(zip(batch.column("frame").to_pylist(), batch.column(name).to_pylist()))
+    return [v for _, v in sorted(rows, key=lambda r: r[0])]
+
+
+def test_values_in_metres(recording):
+    path, logged = recording
+    strips = _column(path, EST, "LineStrips3D:strips")
+    last = np.asarray(strips[-1][0], dtype=np.float64)  # one strip of N points
+    np.testing.assert_allclose(last, logged["est"][:, :3, 3] / 1000.0, rtol=0, atol=1e-6)
+    assert [len(s[0]) for s in strips] == list(range(1, N + 1))
+    gt_last = np.asarray(_column(path, GT, "LineStrips3D:strips")[-1][0])
+    np.testing.assert_allclose(gt_last, logged["gt"][:, :3, 3] / 1000.0, atol=1e-6)
+    err = [v[0] for v in _column(path, "/metrics/translation_error_mm", "Scalars:scalars")]
+    expected = np.linalg.norm(logged["est"][:, :3, 3] - logged["gt"][:, :3, 3], axis=1)
+    np.testing.assert_allclose(err, expected, rtol=1e-5, atol=1e-6)
+    failed = [v[0] for v in _column(path, "/metrics/failed", "Scalars:scalars")]
+    assert failed == [0.0, 0.0, 0.0, 1.0, 0.0]
+    t = np.asarray(_column(path, CAMERA, "Transform3D:translation")[-1]).reshape(3)
+    np.testing.assert_allclose(t, logged["est"][-1][:3, 3] / 1000.0, atol=1e-6)
+    pts = np.asarray(_column(path, MAP, "Points3D:positions")[-1])
+    np.testing.assert_allclose(pts, logged["map"].pos / 1000.0, rtol=1e-6, atol=1e-6)
+    meter = _column(path, DEPTH, "DepthImage:meter")[0]
+    assert np.ravel(meter)[0] == pytest.approx(1000.0)
+
+
+def test_blueprint_is_saved(recording):
+    from rerun.chunk import RrdReader
+
+    path, _ = recording
+    reader = RrdReader(path)
+    assert len(reader.recordings()) == 1
+    assert len(reader.blueprints()) == 1
+    origins = set()
+    for chunk in reader.stream(store=reader.blueprints()[0]):
+        batch = chunk.to_record_batch()
+        for name in batch.schema.names:
+            if name.endswith("space_origin"):
+                origins |= {str(v[0] if isinstance(v, list) else v).strip("/") for v in batch.column(name).to_pylist()}
+    for origin in ("/world", IMAGE, DEPTH, FLOW, W2D, W3D, "/metrics/fps"):
+        assert origin.strip("/") in origins, (origin, origins)
+
+
+def test_without_ground_truth_and_map_only_at_the_end(tmp_path):
+    path = tmp_path / "nogt.rrd"
+    _run_logger(path, gt=False, map_every=0)
+    frames = _frames_per_entity(path)
+    assert frames[(IMAGE, "Image:buffer")] == list(range(N))
+    assert (GT, "LineStrips3D:strips") not in frames
+    assert ("/metrics/translation_error_mm", "Scalars:scalars") not in frames
+    assert frames[(MAP, "Points3D:positions")] == [N - 1]
+
+
+def test_spawn_failure_falls_back_to_the_file(tmp_path, monkeypatch):
+    import slam.rerun_log as rl
+
+    def no_viewer(**kwargs):
+        raise RuntimeError("no viewer here")
+
+    monkeypatch.setattr(rl.rr, "spawn", no_viewer)
+    path = tmp_path / "spawn.rrd"
+    logger = RerunLogger(LoggingConfig(rerun=str(path), spawn=True), _camera(), name="x")
+    logger.log_final(None, np.zeros((0, 4, 4)), None)  # nothing logged: closes cleanly
+    logger.close()  # idempotent
+    assert path.is_file() and path.stat().st_size > 0
+    # no file and no viewer: logging is a no-op (nothing buffered in memory)
+    logger = RerunLogger(LoggingConfig(rerun="", spawn=True), _camera(), name="y")
+    gen = torch.Generator().manual_seed(0)
+    record = FrameRecord(index=0, timestamp=0.0, pose=np.eye(4), failed=False)
+    logger.log_frame(0, None, _view(gen), None, record, FakeMap(), _camera(), np.eye(4))
+    assert logger.positions == []
+    logger.log_final(None, np.eye(4)[None], None)
+
+
+# ------------------------------------------------------------------------------------------------
+def _hue(rgb: np.ndarray) -> float:
+    import colorsys
+
+    return colorsys.rgb_to_hsv(*(rgb.astype(float) / 255.0))[0]
+
+
+def test_flow_to_rgb_zero_is_black_and_direction_is_hue():
+    zero = flow_to_rgb(np.zeros((H, W, 2), np.float32))
+    assert zero.shape == (H, W, 3) and zero.dtype == np.uint8
+    assert zero.max() == 0
+    flow = np.zeros((2, 8, 8), np.float32)  # channel-first like a (1, 2, H, W) tensor
+    flow[0, :, :4] = 2.0   # right
+    flow[0, :, 4:] = -2.0  # left
+    rgb = flow_to_rgb(torch.from_numpy(flow)[None])
+    right, left = rgb[0, 0], rgb[0, -1]
+    assert right.max() > 200 and left.max() > 200  # full magnitude: bright
+    assert abs(_hue(right) - _hue(left)) == pytest.approx(0.5, abs=0.02)  # opposite directions
+    up = flow_to_rgb(np.dstack([np.zeros((4, 4)), -np.ones((4, 4))]))[0, 0]
+    assert min(abs(_hue(up) - _hue(right)), abs(_hue(up) - _hue(left))) > 0.2
+    # magnitude -> value, normalised by a robust max (the outlier does not darken everything)
+    ramp = np.zeros((1, 1001, 2), np.float32)
+    ramp[0, :1000, 0] = np.linspace(0.0, 1.0, 1000)
+    ramp[0, 1000, 0] = 1000.0
+    value = flow_to_rgb(ramp, percentile=99.0).max(axis=-1)[0]
+    assert np.all(np.diff(value[:1000].astype(int)) >= 0) and value[0] == 0 and value[999] == 255
+    assert flow_to_rgb(ramp, max_magnitude=2.0).max(axis=-1)[0, 999] == pytest.approx(128, abs=2)
+    nan = np.full((2, 2, 2), np.nan, np.float32)
+    assert flow_to_rgb(nan).max() == 0
+
+
+def test_colormap_min_dark_max_bright():
+    w = np.linspace(0.3, 7.0, 64, dtype=np.float32).reshape(8, 8)
+    rgb = colormap_u8(torch.from_numpy(w)[None, None])
+    lum = rgb.astype(float) @ [0.299, 0.587, 0.114]
+    assert rgb.shape == (8, 8, 3)
+    assert lum.flat[0] == lum.min() and lum.flat[-1] == lum.max() and lum.max() - lum.min() > 150
+    const = colormap_u8(np.ones((4, 4)))
+    assert const.shape == (4, 4, 3) and np.all(const == const[0, 0])
+
+
+# ------------------------------------------------------------------------------------------------
+def test_rerun_not_imported_unless_asked():
+    code = (
+        "import sys\n"
+        "import slam.runner, slam.pipeline\n"
+        "from types import SimpleNamespace\n"
+        "from slam.config import SlamConfig\n"
+        "assert slam.runner.make_logger(SlamConfig(), SimpleNamespace()) is None\n"
+        "bad = sorted(m for m in sys.modules if m == 'rerun' or m.startswith(('rerun.', 'rerun_bindings')))\n"
+        "assert not bad, bad\n"
+        "print('ok')\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0 and "ok" in res.stdout, res.stderr[-3000:]
+
+
+def test_make_logger_builds_a_rerun_logger(tmp_path):
+    from slam.runner import make_logger
+
+    config = SlamConfig()
+    config.logging.rerun = str(tmp_path / "out" / "run.rrd")
+    dataset = SimpleNamespace(camera=_camera(), path=tmp_path / "seq", gt_poses=None, R1=np.eye(3))
+    logger = make_logger(config, dataset)
+    assert isinstance(logger, RerunLogger)
+    logger.close()
+    assert (tmp_path / "out" / "run.rrd").is_file()

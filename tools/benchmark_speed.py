@@ -1,0 +1,70 @@
+"""Speed benchmark of the whole pipeline, end to end including correspondences.
+
+    .venv/bin/python tools/benchmark_speed.py [--frames 100] [--sizes 320x256 640x512]
+                                             [--modes frame2frame frame2model] [--set key=value ...]
+
+For each size it renders a synthetic `scanning` sequence (seed 4242, an evaluation seed), then runs
+`slam run` in a fresh process per (mode, size) in the default configuration (plus any --set),
+and prints a table of per-stage milliseconds, fps, peak memory and ATE, so speed bought with
+accuracy shows in the same table. Results are also written as markdown and JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+STAGES = ["read", "stereo", "flow", "weights", "solve", "render", "fusion", "logging", "total"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--sizes", nargs="+", default=["320x256", "640x512"])
+    ap.add_argument("--modes", nargs="+", default=["frame2frame", "frame2model"])
+    ap.add_argument("--scenario", default="scanning")
+    ap.add_argument("--out", default="runs/benchmark_speed")
+    ap.add_argument("--set", action="append", default=[])
+    args = ap.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    slam = [sys.executable, "-m", "slam.cli"]
+    rows = []
+    for size in args.sizes:
+        data = out / f"data_{args.scenario}_{size}_{args.frames}"
+        if not (data / "groundtruth.txt").is_file():
+            subprocess.run([*slam, "synth", str(data), "--scenario", args.scenario, "--frames", str(args.frames),
+                            "--size", size, "--seed", "4242"], check=True, capture_output=True)
+        for mode in args.modes:
+            run_dir = out / f"{mode}_{size}"
+            cmd = [*slam, "run", str(data), "--mode", mode, "--out", str(run_dir), "--quiet"]
+            for s in args.set:
+                cmd += ["--set", s]
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0:
+                print(proc.stderr, file=sys.stderr)
+                rows.append({"size": size, "mode": mode, "error": proc.stderr.strip().splitlines()[-1:]})
+                continue
+            m = json.loads((run_dir / "metrics.json").read_text())
+            rows.append({"size": size, "mode": mode, "fps": m["fps"], "ate_rmse_mm": m.get("ate_rmse_mm"),
+                         "peak_rss_mb": m.get("peak_rss_mb"), "failed": len(m["failed_frames"]),
+                         **{f"{k}_ms": m["timings_ms"].get(k) for k in STAGES}})
+    header = ["size", "mode", *[f"{k}_ms" for k in STAGES], "fps", "peak_rss_mb", "ate_rmse_mm", "failed"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for r in rows:
+        cells = []
+        for h in header:
+            v = r.get(h)
+            cells.append("-" if v is None else (f"{v:.1f}" if isinstance(v, float) and h != "ate_rmse_mm" else
+                                                (f"{v:.3f}" if isinstance(v, float) else str(v))))
+        lines.append("| " + " | ".join(cells) + " |")
+    table = "\n".join(lines)
+    print(table)
+    (out / "speed.md").write_text(table + "\n")
+    (out / "speed.json").write_text(json.dumps(rows, indent=2))
+
+
+if __name__ == "__main__":
+    main()
