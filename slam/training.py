@@ -108,7 +108,8 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     correspondence: CorrespondenceConfig = field(default_factory=CorrespondenceConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
-    solver: SolverConfig = field(default_factory=lambda: SolverConfig(max_iters=15, step_tol=1e-10))
+    # the declarative layer needs a true minimum: no early stop on a flat cost, tight step tolerance
+    solver: SolverConfig = field(default_factory=lambda: SolverConfig(max_iters=25, step_tol=1e-12, cost_rtol=0.0))
 
 
 def load_train_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:

@@ -52,7 +52,7 @@ def main() -> None:
     _, train_set, val = training_data(cfg)
     samples = train_set + val
     rows = []
-    for ratio in [0.0, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0, float("inf")]:
+    for ratio in [0.0, 0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 10.0, 100.0, float("inf")]:
         w2, w3 = (0.0, 1.0) if ratio == float("inf") else (1.0, ratio)
         r = pose_errors(samples, cfg, w2, w3)
         rows.append({"w2d": w2, "w3d": w3, **r})
