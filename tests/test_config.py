@@ -11,6 +11,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_default_yaml_equals_builtin_defaults():
+    # regenerate with tools/write_default_config.py after changing a default
     assert yaml.safe_load((ROOT / "configs" / "default.yaml").read_text()) == to_dict(SlamConfig())
 
 
