@@ -219,6 +219,10 @@ def validate(config: SlamConfig) -> None:
     for ok, message in checks:
         if not ok:
             raise ConfigError(f"config: {message}")
+    try:
+        config.map.validate()
+    except ValueError as err:
+        raise ConfigError(f"config: {err}") from None
 
 
 def to_dict(config: Any) -> dict:

@@ -1,0 +1,110 @@
+"""The surfel map facade: fusion, rendering and export over one :class:`SurfelStore`."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from . import export
+from .config import MapConfig
+from .fusion import _Timer, fuse_frame, measure
+from .render import Camera, ModelView, render
+from .surfels import SurfelStore
+
+
+class SurfelMap:
+    """An ElasticFusion-style surfel map in millimetres.
+
+    Poses are 4x4 ``T_wc`` (camera to world, OpenCV axes), ``K`` is the 3x3 pinhole intrinsics;
+    depth ``(H, W)`` float32 mm (0 = invalid), colour ``(3, H, W)`` in [0, 1].
+
+    Args:
+        config: the tunables (:class:`MapConfig`); defaults when None.
+        device: torch device every tensor lives on.
+
+    Attributes:
+        profile: when True, ``fuse`` and ``render`` record milliseconds per stage in
+            ``last_timings`` (synchronising the device; off by default).
+    """
+
+    def __init__(self, config: MapConfig | None = None, device: str | torch.device = "cpu") -> None:
+        self.config = config if config is not None else MapConfig()
+        self.config.validate()
+        self.device = torch.device(device)
+        c = self.config
+        self.store = SurfelStore(c.initial_capacity, c.chunk_size, c.growth_factor, c.compact_fraction,
+                                 self.device)
+        self.profile = False
+        self.last_timings: dict[str, float] = {}
+        self.frames_fused = 0
+
+    # ------------------------------------------------------------------ fusion
+    def fuse(self, depth, color, K, T_wc, frame_index: int, weight=None, valid=None) -> dict:
+        """Fuse one frame; returns stats ``matched``, ``added``, ``removed`` (free-space, merged and
+        expired surfels; plus ``merged``, ``decayed``: stable surfels whose confidence a free-space
+        violation decayed, ``visible``: surfels in view before fusion, ``surfels``: live after).
+
+        Args:
+            depth: ``(H, W)`` mm, 0 (or outside ``[min_depth_mm, max_depth_mm]``) = invalid.
+            color: ``(3, H, W)`` in [0, 1].
+            K: ``(3, 3)`` intrinsics; T_wc: ``(4, 4)`` camera-to-world pose of the frame.
+            frame_index: frame counter (non-decreasing), used for the time window.
+            weight: optional ``(H, W)`` in [0, 1]; 0 = not fused (instrument, specular, deforming).
+            valid: optional ``(H, W)`` bool; False = not fused.
+        """
+        timer = _Timer(self.profile, self.device)
+        H, W = depth.shape[-2:]
+        cam = Camera.make(K, T_wc, H, W, self.device)
+        meas = measure(depth, color, cam, self.config, weight, valid)
+        timer.lap("measure")
+        stats = fuse_frame(self.store, self.config, cam, meas, int(frame_index), timer)
+        self.frames_fused += 1
+        if self.profile:
+            self.last_timings = dict(timer.times)
+        return stats
+
+    # ------------------------------------------------------------------ rendering
+    def render(self, K, T_wc, height: int, width: int, stable_only: bool = False) -> ModelView:
+        """Splat the map into a ``height x width`` view from ``T_wc`` (see :class:`ModelView`)."""
+        timer = _Timer(self.profile, self.device)
+        view, nvis = render(self.store, self.config, K, T_wc, int(height), int(width), stable_only)
+        timer.lap("render")
+        if self.profile:
+            self.last_timings = {**self.last_timings, **timer.times, "render_visible": float(nvis)}
+        return view
+
+    # ------------------------------------------------------------------ queries
+    def __len__(self) -> int:
+        return self.store.num_alive
+
+    def num_stable(self) -> int:
+        return int(self.store.stable_mask(self.config.stable_confidence).sum())
+
+    def points(self, stable_only: bool = True) -> dict:
+        """Live (or stable) surfels as numpy arrays: ``positions`` (N, 3) mm, ``normals`` (N, 3),
+        ``colors`` (N, 3) in [0, 1], ``radii`` (N,) mm, ``confidence`` (N,), ``t_init``, ``t_last`` (N,)."""
+        st = self.store
+        n = st.n
+        mask = st.stable_mask(self.config.stable_confidence) if stable_only else st.alive[:n]
+        idx = mask.nonzero().squeeze(1)
+
+        def np_(x: torch.Tensor) -> np.ndarray:
+            return x[idx].detach().cpu().numpy()
+
+        return {"positions": np_(st.pos), "normals": np_(st.normal), "colors": np_(st.color),
+                "radii": np_(st.radius), "confidence": np_(st.conf),
+                "t_init": np_(st.t_init), "t_last": np_(st.t_last)}
+
+    # ------------------------------------------------------------------ export
+    def save_ply(self, path, stable_only: bool = True, scale: float = 1e-3) -> int:
+        """Write an open3d point cloud (colours, normals; metres by default) to ``path``; returns
+        the number of points."""
+        return export.save_ply(self.points(stable_only), path, scale)
+
+    def save_mesh(self, path, scale: float = 1e-3, depth: int = 8) -> int:
+        """Mesh the stable points (Poisson of octree ``depth``, density/distance trimmed; ball
+        pivoting fallback) and write it to ``path``; returns the triangle count."""
+        return export.save_mesh(self.points(True), path, self.config, scale, depth)
+
+    def __repr__(self) -> str:
+        return (f"SurfelMap({len(self)} surfels, {self.num_stable()} stable, "
+                f"capacity {self.store.capacity}, device {self.device})")
