@@ -60,7 +60,7 @@ def test_exp_log_round_trip():
 
 def test_analytic_jacobians_match_autograd():
     p_gt = p_from_mm_rad([0.4, -0.2, 0.7], [0.01, -0.02, 0.005])
-    prob = make_problem(p_gt)
+    prob = make_problem(p_gt, H=12, W=16)
     T = se3_exp(torch.randn(1, 6, dtype=torch.float64) * 0.01)
     _, _, Y = residuals(T, prob)
     J2, J3 = jacobians(Y, prob)
@@ -72,6 +72,24 @@ def test_analytic_jacobians_match_autograd():
     J = torch.autograd.functional.jacobian(stacked, torch.zeros(6, dtype=torch.float64))
     J_analytic = torch.cat([J2[0].reshape(-1, 6), J3[0].reshape(-1, 6)])
     assert torch.allclose(J, J_analytic, rtol=1e-9, atol=1e-12)
+
+
+def test_closed_form_normal_equations_match_the_jacobians():
+    from vo.solver import normal_equations
+
+    prob = make_problem(p_from_mm_rad([0.4, -0.2, 0.7], [0.01, -0.02, 0.005]), H=20, W=24)
+    g = torch.Generator().manual_seed(1)
+    prob = prob.with_weights(torch.rand(prob.w2d.shape, generator=g, dtype=torch.float64),
+                             torch.rand(prob.w3d.shape, generator=g, dtype=torch.float64))
+    T = se3_exp(torch.randn(1, 6, dtype=torch.float64, generator=g) * 0.01)
+    e2, e3, Y = residuals(T, prob)
+    J2, J3 = jacobians(Y, prob)
+    w2, w3 = prob.w2d[0], prob.w3d[0]
+    H_ref = torch.einsum("n,nri,nrj->ij", w2, J2[0], J2[0]) + torch.einsum("n,nri,nrj->ij", w3, J3[0], J3[0])
+    g_ref = torch.einsum("n,nri,rn->i", w2, J2[0], e2[0]) + torch.einsum("n,nri,rn->i", w3, J3[0], e3[0])
+    H, gv, _ = normal_equations(T, prob)
+    assert torch.allclose(H[0], H_ref, rtol=1e-10, atol=1e-12)
+    assert torch.allclose(gv[0], g_ref, rtol=1e-10, atol=1e-14)
 
 
 @pytest.mark.parametrize("method", ["lm", "gauss_newton", "lbfgs"])
