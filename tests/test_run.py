@@ -143,3 +143,36 @@ def test_eval_command(synth_dir, tmp_path, capsys):
     assert main(["eval", str(data / "groundtruth.txt"), str(data / "groundtruth.txt")]) == 0
     out = capsys.readouterr().out
     assert "ATE" in out
+
+
+def test_compare_writes_table_and_plot(synth_dir, tmp_path, capsys):
+    data = synth_dir("rigid", 30, (160, 128))
+    out = tmp_path / "cmp"
+    assert main(["compare", str(data), "--weights", "constant", "--frames", "15", "--out", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "| frame2frame |" in printed and "| frame2model |" in printed
+    rows = json.loads((out / "comparison.json").read_text())
+    assert set(rows) == {"frame2frame", "frame2model"}
+    assert rows["frame2model"]["map_points"] > 1000 and rows["frame2frame"].get("map_points") is None
+    assert (out / "comparison.png").stat().st_size > 10_000 and (out / "comparison.md").is_file()
+    assert (out / "frame2model" / "map.ply").is_file()
+
+
+def test_frame2model_map_export(synth_dir, tmp_path):
+    import open3d as o3d
+
+    data = synth_dir("rigid", 30, (160, 128))
+    out = tmp_path / "f2m"
+    assert main(["run", str(data), "--mode", "frame2model", "--weights", "constant", "--frames", "12", "--mesh",
+                 "--out", str(out), "--quiet"]) == 0
+    pcd = o3d.io.read_point_cloud(str(out / "map.ply"))
+    m = json.loads((out / "metrics.json").read_text())
+    assert len(pcd.points) == m["map_points"] > 1000 and pcd.has_colors() and pcd.has_normals()
+    # metres, in the world frame of trajectory.txt: the points lie ~60-100 mm in front of the cameras
+    _, poses = read_tum(out / "trajectory.txt")
+    pts = np.asarray(pcd.points)
+    cam = poses[0, :3, 3] / 1000.0
+    dist = np.linalg.norm(pts - cam, axis=1)
+    assert 0.04 < np.median(dist) < 0.15
+    mesh = o3d.io.read_triangle_mesh(str(out / "mesh.ply"))
+    assert len(mesh.triangles) > 100
