@@ -85,7 +85,7 @@ class SolverConfig:
     max_rotation_deg: float = 15.0
     min_valid_pixels: int = 200
     init: str = "identity"
-    max_pixels: int = 0
+    max_pixels: int = 16384
 
 
 @dataclass
