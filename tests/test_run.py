@@ -176,3 +176,12 @@ def test_frame2model_map_export(synth_dir, tmp_path):
     assert 0.04 < np.median(dist) < 0.15
     mesh = o3d.io.read_triangle_mesh(str(out / "mesh.ply"))
     assert len(mesh.triangles) > 100
+
+
+def test_rigid_320x256_frame2frame_constant_below_2mm(synth_dir, tmp_path):
+    """Issue target: 150 rigid frames at 320x256 with constant weights, ATE-RMSE below 2.0 mm."""
+    data = synth_dir("rigid", 150, (320, 256), seed=9001)
+    out = tmp_path / "rigid150"
+    assert main(["run", str(data), "--weights", "constant", "--out", str(out), "--quiet"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["failed_frames"] == [] and m["ate_rmse_mm"] < 2.0
