@@ -392,22 +392,17 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
         if val_loss < best_val:
             best_val, best_epoch, stale = val_loss, epoch, 0
             best_state = {k: v.clone() for k, v in nets.state_dict().items()}
+            if rank == 0:  # an interrupted training keeps its best checkpoint
+                save_checkpoint(out_dir / f"weights_{cfg.residuals}.pt", cfg, best_state, sequences, len(train_set),
+                                len(val), best_epoch, best_val, baseline, history, t0, final=False)
         else:
             stale += 1
             if stale >= cfg.optim.patience:
                 break
     ckpt_path = out_dir / f"weights_{cfg.residuals}.pt"
     if rank == 0:
-        meta = {
-            "residuals": cfg.residuals, "downscale": cfg.downscale, "base": cfg.base,
-            "correspondence": asdict(cfg.correspondence), "image_size": [cfg.data.width, cfg.data.height],
-            "max_depth_mm": cfg.depth.max_depth_mm, "train_config": asdict(cfg),
-            "data": {"sequences": [str(p) for p in sequences], "pairs_train": len(train_set), "pairs_val": len(val)},
-            "best_epoch": best_epoch, "val_loss": best_val, "val_loss_constant_w1": baseline,
-            "history": history, "minutes": (time.time() - t0) / 60.0,
-        }
-        torch.save({"state_dict": best_state, "meta": meta}, ckpt_path)
-        (out_dir / f"train_log_{cfg.residuals}.json").write_text(json.dumps(meta, indent=2, default=str))
+        save_checkpoint(ckpt_path, cfg, best_state, sequences, len(train_set), len(val), best_epoch, best_val,
+                        baseline, history, t0, final=True)
         print(f"best validation loss {best_val:.5f} at epoch {best_epoch} (constant weights w=1: {baseline:.5f}); "
               f"checkpoint {ckpt_path}")
     if world > 1:
@@ -415,6 +410,23 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
 
         dist.destroy_process_group()
     return ckpt_path
+
+
+def save_checkpoint(path: Path, cfg: TrainConfig, state: dict, sequences: list, n_train: int, n_val: int,
+                    best_epoch: int, best_val: float, baseline: float, history: list, t0: float, final: bool) -> None:
+    """Write the weights with everything needed to reproduce and use them."""
+    meta = {
+        "residuals": cfg.residuals, "downscale": cfg.downscale, "base": cfg.base,
+        "correspondence": asdict(cfg.correspondence), "image_size": [cfg.data.width, cfg.data.height],
+        "max_depth_mm": cfg.depth.max_depth_mm, "train_config": asdict(cfg),
+        "data": {"sequences": [str(p) for p in sequences], "pairs_train": n_train, "pairs_val": n_val},
+        "best_epoch": best_epoch, "val_loss": best_val, "val_loss_constant_w1": baseline,
+        "history": history, "minutes": (time.time() - t0) / 60.0, "finished": final,
+    }
+    tmp = path.with_suffix(".tmp")
+    torch.save({"state_dict": state, "meta": meta}, tmp)
+    tmp.replace(path)
+    (path.parent / f"train_log_{cfg.residuals}.json").write_text(json.dumps(meta, indent=2, default=str))
 
 
 def train_from_config(config_path: str | Path, out: str | Path | None, overrides: list[str] | None = None) -> Path:
