@@ -187,8 +187,8 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
     return config
 
 
-def apply_override(config: SlamConfig, item: str) -> None:
-    """Apply one ``a.b=value`` override."""
+def apply_override(config: Any, item: str) -> None:
+    """Apply one ``a.b=value`` override to a configuration dataclass."""
     if "=" not in item:
         raise ConfigError(f"--set {item}: expected key=value")
     key, raw = item.split("=", 1)

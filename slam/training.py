@@ -114,7 +114,7 @@ class TrainConfig:
 
 def load_train_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:
     """Defaults, then the YAML file, then ``key=value`` overrides, validated like the run config."""
-    from slam.config import _merge
+    from slam.config import _merge, apply_override
 
     path = Path(path)
     if not path.is_file():
@@ -126,16 +126,7 @@ def load_train_config(path: str | Path, overrides: list[str] | None = None) -> T
     cfg = TrainConfig()
     _merge(cfg, data, "", str(path))
     for item in overrides or []:
-        if "=" not in item:
-            raise ConfigError(f"--set {item}: expected key=value")
-        key, raw = item.split("=", 1)
-        nested: dict = {}
-        cur = nested
-        parts = key.split(".")
-        for part in parts[:-1]:
-            cur = cur.setdefault(part, {})
-        cur[parts[-1]] = yaml.safe_load(raw)
-        _merge(cfg, nested, "", "--set")
+        apply_override(cfg, item)
     if cfg.residuals not in ("2d3d", "2d", "3d"):
         raise ConfigError(f"{path}: 'residuals' must be one of 2d3d, 2d, 3d")
     return cfg
