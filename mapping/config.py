@@ -81,15 +81,28 @@ class MapConfig:
 
         splat_max_half: the renderer splats a surfel into at most a
             ``(2 * splat_max_half + 1)^2`` pixel footprint (3 -> 7x7).
-        splat_round: footprint half-size is ``floor(r_px + splat_round)`` pixels for a projected
-            radius ``r_px`` (0.5 = every pixel the disc can touch; smaller is faster, the
+        splat_round: footprint half-size is ``floor(R + splat_round)`` pixels for a footprint
+            radius ``R`` (0.5 = every pixel the footprint can touch; smaller is faster, the
             neighbouring discs of a surface seen at its fusion resolution still close every gap).
-        render_exact_discs: footprint test of the renderer: False = the pixels within the projected
-            radius of the projected centre (cheap; depth still exact on the disc's plane), True =
-            the exact ray/disc intersection test (the disc's image ellipse; sharper silhouettes of
-            oblique surfels, about 2x the per-surfel work).
+        render_exact_discs: footprint of a surfel in the renderer: False = the circle of the same
+            area as the disc's image ellipse, ``R = r_px * sqrt(|n . ray|)`` around the projected
+            centre (``r_px`` the projected radius; cheap, depth still exact on the disc's plane),
+            True = the exact ray/disc intersection test (the disc's image ellipse, ``R = r_px``;
+            about 2x the per-surfel work).
         render_min_cos: surfels whose disc is seen at ``|n . ray|`` below this are splatted only
             into their centre pixel (ray-disc intersection is ill-conditioned at grazing angles).
+        render_depth_tol_mm: the renderer z-buffers the footprints (stable surfels take precedence
+            over unstable ones), then blends, per pixel, the surfels of the front's class whose
+            depth on their plane lies within ``max(render_depth_tol_mm, render_depth_tol_rel *
+            depth)`` behind the front depth (the surfels of the visible surface; occluded surfaces
+            lie farther behind).
+        render_depth_tol_rel: see ``render_depth_tol_mm``.
+        render_blend_sigma: width of the renderer's blending kernel relative to the footprint
+            radius ``R``: a surfel's weight at a pixel is ``(1 - d^2 / R^2)^k`` (``d`` the distance
+            from the pixel centre to the surfel's projected centre, ``k = round(1 / (2 sigma^2))``),
+            about a Gaussian of ``sigma * R`` pixels with compact support.  The colour and depth of
+            a pixel are the normalised blend of the surfels centred near it; smaller is sharper
+            but approaches nearest-surfel sampling (jagged), larger blurs.
 
         mesh_density_quantile: Poisson vertices whose density is below this quantile are trimmed.
         mesh_trim_radius_factor: Poisson vertices farther than this many median surfel radii from
@@ -138,6 +151,9 @@ class MapConfig:
     splat_round: float = 0.25
     render_exact_discs: bool = False
     render_min_cos: float = 0.05
+    render_depth_tol_mm: float = 1.0
+    render_depth_tol_rel: float = 0.02
+    render_blend_sigma: float = 0.35
 
     # export
     mesh_density_quantile: float = 0.02
@@ -179,6 +195,9 @@ class MapConfig:
         need(0 <= self.splat_max_half <= 8, "splat_max_half must be in [0, 8]")
         need(0 <= self.splat_round <= 1, "splat_round must be in [0, 1]")
         need(0 <= self.render_min_cos < 1, "render_min_cos must be in [0, 1)")
+        need(self.render_depth_tol_mm > 0 and self.render_depth_tol_rel >= 0,
+             "render_depth_tol_mm must be > 0 and render_depth_tol_rel >= 0")
+        need(0.1 <= self.render_blend_sigma <= 0.75, "render_blend_sigma must be in [0.1, 0.75]")
         need(0 <= self.mesh_density_quantile < 1, "mesh_density_quantile must be in [0, 1)")
         need(self.mesh_trim_radius_factor > 0, "mesh_trim_radius_factor must be > 0")
 

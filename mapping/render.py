@@ -3,11 +3,13 @@
 Everything is vectorised over surfels: the visible set is found by testing the chunk bounding
 boxes of :class:`mapping.surfels.SurfelStore` against the frustum, then the surfels of the
 surviving chunks individually.  The renderer expands every visible surfel into the pixels of its
-projected footprint (at most ``(2 h + 1)^2``, grouped by footprint size), takes the depth of each
-pixel from the ray's intersection with the surfel's plane (exact, sub-pixel), and z-buffers with
-one ``scatter_reduce`` on an int64 key ``quantised inverse depth << 32 | surfel``; the winner's
-attributes are gathered per pixel.  The index map used by the fusion is a super-sampled depth
-buffer z-tested the same way.
+projected footprint (at most ``(2 h + 1)^2``, grouped by footprint size) and takes the depth of
+each pixel from the ray's intersection with the surfel's plane (exact, sub-pixel).  Pass 1
+z-buffers with one ``scatter_reduce`` on an int64 key ``(stable, quantised inverse depth) << 32 |
+surfel`` (the front surface); pass 2 blends the colour and plane depth of the surfels of that
+surface with weights falling off with the distance from the pixel centre to each surfel's
+projected centre (``scatter_add``), so the view is sharp and sub-pixel exact (surface splatting).
+The index map used by the fusion is a super-sampled depth buffer z-tested with ``scatter_reduce``.
 """
 from __future__ import annotations
 
@@ -20,6 +22,8 @@ from .surfels import SurfelStore, take
 
 KEY_EMPTY = torch.iinfo(torch.int64).max
 _ID_MASK = (1 << 32) - 1
+_Q_MAX = (1 << 30) - 1       # quantised inverse depth range of the z-buffer keys
+_CHUNK = 1 << 17             # splat entries evaluated at a time
 
 
 @dataclass
@@ -245,21 +249,53 @@ def cell_winners(cell: torch.Tensor, z: torch.Tensor, num_cells: int, exclude: t
     return win
 
 
+def _kernel_power(sigma: float) -> int:
+    """Exponent ``k`` of the blending kernel ``(1 - d^2 / R^2)^k`` ~ ``exp(-k d^2 / R^2)``: a bell of
+    width ``sigma * R`` for ``k = 1 / (2 sigma^2)`` (rounded; 4 for the default 0.35)."""
+    return max(1, int(round(0.5 / (sigma * sigma))))
+
+
+def _int_pow_(x: torch.Tensor, k: int) -> torch.Tensor:
+    """``x ** k`` in place for an integer ``k >= 1`` by repeated squaring (``pow`` is ~8x slower)."""
+    if k == 1:
+        return x
+    rest = x.clone() if k & 1 else None
+    x = _int_pow_(x.square_(), k >> 1)
+    return x.mul_(rest) if rest is not None else x
+
+
 def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig) -> ModelView:
-    """Z-buffered disc splatting of the visible surfels into a ``(H, W)`` view.
+    """Two-pass surface splatting of the visible surfels into a ``(H, W)`` view.
 
     Every surfel is expanded into the ``(2h + 1)^2`` pixel offsets ``(ox, oy)`` around its centre
-    pixel (``h`` from its projected radius, surfels grouped by ``h``).  For an offset, the inverse
-    depth of the pixel ray's intersection with the surfel's plane is affine in ``(ox, oy)``
-    (exact sub-pixel depth on the disc's plane), and the footprint test is a quadratic in
-    ``(ox, oy)``: by default the circle of the projected radius around the projected centre
-    (``render_exact_discs=False``), or the exact image conic of the disc ``|X - p| <= r``.
-    Their coefficients are computed once per surfel, and one small matrix product against the
-    monomials of the footprint offsets evaluates every entry.  The z-buffer is one
-    ``scatter_reduce(amax)`` over int64 keys ``quantised inverse depth << 32 | surfel``; the
-    winner's attributes are gathered per pixel.  The centre pixel of every surfel is always
-    written, so no surfel vanishes between pixel centres.  The buffer is padded so no bounds tests
-    are needed per entry.
+    pixel (``h`` from its footprint radius, surfels grouped by ``h``).  For an offset, the inverse
+    depth of the pixel ray's intersection with the surfel's plane is affine in ``(ox, oy)`` (exact
+    sub-pixel depth on the disc's plane) and ``t = 1 - d^2 / R^2`` is a quadratic, ``d`` the
+    distance from the pixel centre to the projected surfel centre and ``R`` the footprint radius:
+    by default the footprint is the circle ``t >= 0`` of the same area as the disc's image ellipse
+    (``R = r_px sqrt(|cos|)``, ``render_exact_discs=False``), else the exact image conic of the disc
+    ``|X - p| <= r`` (``R = r_px``).  The coefficients are computed once per surfel, and one small
+    matrix product against the monomials of the offsets evaluates every entry.  The centre pixel of
+    every surfel is always covered, so no surfel vanishes between pixel centres.  The buffers are
+    padded so no bounds tests are needed per entry.
+
+    Pass 1 (visibility) z-buffers the footprints with one ``scatter_reduce(amax)`` over int64 keys
+    ``(stable * 2^30 + quantised inverse depth) << 32 | surfel``: the front surface of every pixel
+    and its front-most surfel (``index``, ``normals``, ``confidence``).  Stable surfels (confidence
+    >= ``stable_confidence``) take precedence: unstable ones (fresh, or noise not yet removed) only
+    show where no stable surfel covers the pixel, as in ElasticFusion's model prediction.  Pass 2
+    (blending) keeps, per pixel, the entries of the front's class (stable or not) within
+    ``max(render_depth_tol_mm, render_depth_tol_rel * depth)`` behind the front depth - the surfels
+    of the visible surface - and averages their colour and plane depth with the weights
+    ``min(conf / stable_confidence, 1) * t^k`` (a compact bell, ~ a Gaussian of sigma
+    ``render_blend_sigma * R``, ``k = 1 / (2 render_blend_sigma^2)``: 4 by default), normalised per
+    pixel (``scatter_add``).  A pixel thus takes its colour and depth from the surfels centred
+    near it, interpolated, instead of from whichever overlapping disc happens to lie in front
+    (which shifts and jitters the image by up to a splat radius).
+
+    All per-entry arithmetic is float (no boolean masks: they are several times slower on CPU),
+    evaluated in chunks of about ``_CHUNK`` entries whose temporaries the allocator recycles; pass 2
+    recomputes the entries rather than storing them.
     """
     H, W = cam.height, cam.width
     dev = store.device
@@ -270,6 +306,7 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig) -> M
     slots = vis.slots
     n = cam.rot_to_cam(take(store.normal, slots))
     r = take(store.radius, slots)
+    conf = take(store.conf, slots)
     # per-surfel quantities as contiguous rows (structure of arrays)
     px, py, pz = vis.p.T.contiguous()
     nx, ny, nz = n.T.contiguous()
@@ -278,19 +315,35 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig) -> M
     rx0 = (uc - cam.cx) / cam.fx                              # centre pixel ray (rx0, ry0, 1)
     ry0 = (vc - cam.cy) / cam.fy
     # inverse depth at pixel offset (ox, oy) = (n . ray) / (n . p), affine in (ox, oy); scaled to
-    # the z-buffer's 31-bit integer range right away (depth >= near / 4 fits)
-    q_scale = float(2 ** 31 - 1) * cfg.near_mm * 0.25
+    # the z-buffer's 30-bit integer range right away (depth >= near / 4 fits)
+    q_scale = float(_Q_MAX) * cfg.near_mm * 0.25
     den0 = torch.addcmul(torch.addcmul(nz, nx, rx0), ny, ry0)
     ndp = torch.addcmul(torch.addcmul(nz * pz, nx, px), ny, py)
-    # grazing surfels (|n . ray| small at the centre pixel): centre pixel only, at the centre depth
-    good = den0.abs() >= cfg.render_min_cos * torch.sqrt(torch.addcmul(torch.addcmul(
-        torch.ones_like(rx0), rx0, rx0), ry0, ry0))
+    # |n . ray| / |ray| at the centre pixel; grazing surfels (small): centre pixel only, at the
+    # centre depth (ray-disc intersection is ill-conditioned there)
+    cos_v = den0.abs() * torch.rsqrt(torch.addcmul(torch.addcmul(torch.ones_like(rx0), rx0, rx0), ry0, ry0))
+    good = cos_v >= cfg.render_min_cos
     scale = torch.where(good, q_scale / ndp, 0.0)
     L0 = torch.where(good, den0 * scale, q_scale / pz)
     L1 = nx * scale * (1.0 / cam.fx)
     L2 = ny * scale * (1.0 / cam.fy)
     r_px = r * cam.f / pz
-
+    if cfg.render_exact_discs:
+        R_fp = r_px
+    else:
+        # the disc's image is an ellipse of half-axes ~ r_px and r_px |cos|; the circle of equal
+        # area (the fusion enlarges oblique radii by 1 / |cos|: splatting that isotropically would
+        # smear oblique surfels over their neighbours)
+        R_fp = r_px * torch.sqrt(cos_v.clamp(cfg.render_min_cos, 1.0))
+    # t = 1 - d^2 / R^2 with d^2 = ox^2 + oy^2 - 2 du ox - 2 dv oy + du^2 + dv^2
+    du = vis.u - uc
+    dv = vis.v - vc
+    g = -1.0 / (R_fp * R_fp)
+    t0 = torch.addcmul(torch.ones_like(g), g, torch.addcmul(du * du, dv, dv))
+    rows = [t0, -2.0 * g * du, -2.0 * g * dv, g]
+    monos = [("1", "x", "y", "rr")]                           # block 0: t
+    rows += [L0, L1, L2]
+    monos.append(("1", "x", "y"))                             # block 1: inverse depth
     if cfg.render_exact_discs:
         # orthonormal tangent basis (e1, e2) of each disc (Duff et al. 2017, branchless)
         sign = torch.where(nz >= 0, 1.0, -1.0)
@@ -310,71 +363,129 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig) -> M
 
         g1, g2 = plane_coef(e1), plane_coef(e2)
         gr = (L0 * r, L1 * r, L2 * r)
-        # g1^2 + g2^2 - (r i)^2 <= 0: the 6 coefficients of the quadratic in (ox, oy)
-        rows = []
+        # (r i)^2 - g1^2 - g2^2 >= 0: the 6 coefficients of the quadratic in (ox, oy)
         for i, j, w in ((0, 0, 1.0), (0, 1, 2.0), (0, 2, 2.0), (1, 1, 1.0), (1, 2, 2.0), (2, 2, 1.0)):
-            c = torch.addcmul(torch.addcmul(g1[i] * g1[j], g2[i], g2[j]), gr[i], gr[j], value=-1.0)
+            c = torch.addcmul(torch.addcmul(-g1[i] * g1[j], g2[i], g2[j], value=-1.0), gr[i], gr[j])
             if w != 1.0:
                 c = c * w
-            rows.append(torch.where(good, c, 1.0) if i == j == 0 else c * good)
-        monos = ("1", "x", "y", "xx", "xy", "yy")
-    else:
-        # circle of the projected radius around the projected centre:
-        # (ox - du)^2 + (oy - dv)^2 - r_px^2 = ox^2 + oy^2 - 2 du ox - 2 dv oy + du^2 + dv^2 - r_px^2
-        du = vis.u - uc
-        dv = vis.v - vc
-        c0 = torch.addcmul(torch.addcmul(r_px * r_px, du, du, value=-1.0), dv, dv, value=-1.0)
-        rows = [torch.where(good, -c0, 1.0), -2.0 * du, -2.0 * dv]
-        monos = ("1", "x", "y")                               # + ox^2 + oy^2 as a constant column
-    nq = len(rows)
-    coef = torch.stack(rows + [L0, L1, L2])                   # (nq + 3, V)
+            rows.append(torch.where(good, c, -1.0) if i == j == 0 else c * good)
+        monos.append(("1", "x", "y", "xx", "xy", "yy"))        # block 2: disc conic
+    coef = torch.stack(rows)                                  # (ncoef, V)
+    ncoef = coef.shape[0]
+    nblk = len(monos)
+    # blending weight (c^(1/k) t)^k: kernel exponent k ~ 1 / (2 sigma^2) (a bell of ~ sigma R) and
+    # the confidence factor c as its k-th root
+    k_pow = _kernel_power(cfg.render_blend_sigma)
+    c4 = (conf.clamp(1e-4, cfg.stable_confidence) * (1.0 / cfg.stable_confidence)).pow_(1.0 / k_pow)[None, :]
+    # stable surfels' z-buffer values are raised by 2^30 (above any quantised inverse depth)
+    stab = torch.where(conf >= cfg.stable_confidence, float(_Q_MAX + 1), 0.0)[None, :]
+    ids = torch.arange(V, device=dev)[None, :]
 
-    half = torch.where(good, torch.floor(r_px + cfg.splat_round), 0.0).clamp(0, hmax).long()
+    half = torch.where(good, torch.floor(R_fp + cfg.splat_round), 0.0).clamp(0, hmax).long()
     pad = 2 * hmax + 2                                        # a centre may lie hmax px outside
     Wp = W + 2 * pad
     Hp = H + 2 * pad
-    base = (vc.long() + pad) * Wp + (uc.long() + pad)          # padded linear pixel of the centre
-    buf = torch.zeros(Hp * Wp, dtype=torch.long, device=dev)  # keys > 0 where a surfel wins
+    base = ((vc.long() + pad) * Wp + (uc.long() + pad))[None, :]   # padded pixel of the centre
+    # per footprint-size bucket (a few, not a loop over surfels): its surfels' coefficients and
+    # the monomials of its offsets
     counts = torch.bincount(half, minlength=hmax + 1).tolist()
-    for h in range(hmax + 1):      # a few footprint-size buckets, not a loop over surfels
+    buckets = []
+    for h in range(hmax + 1):
         if counts[h] == 0:
             continue
         if counts[h] == V:
-            sel, cf, bs = torch.arange(V, device=dev), coef, base
+            sel, per = None, (coef, base, ids, stab, c4)
         else:
             sel = (half == h).nonzero().squeeze(1)
-            cf, bs = coef.index_select(1, sel), take(base, sel)
+            per = tuple(x.index_select(1, sel) for x in (coef, base, ids, stab, c4))
         off = torch.arange(-h, h + 1, device=dev, dtype=torch.float32)
         oy, ox = torch.meshgrid(off, off, indexing="ij")
         ox, oy = ox.reshape(-1), oy.reshape(-1)
         k2 = ox.numel()
-        table = {"1": torch.ones_like(ox), "x": ox, "y": oy, "xx": ox * ox, "xy": ox * oy, "yy": oy * oy}
-        basis = torch.zeros(2 * k2, nq + 3, device=dev)
-        basis[:k2, :nq] = torch.stack([table[m] for m in monos], 1)
-        basis[k2:, nq:] = torch.stack([table["1"], ox, oy], 1)
-        bias = torch.zeros(2 * k2, 1, device=dev)
-        if not cfg.render_exact_discs:
-            bias[:k2, 0] = ox * ox + oy * oy
-        out = torch.addmm(bias, basis, cf)                     # (2 k2, S): footprint test | inv. depth
-        ok = out[:k2] <= 0
-        ok[k2 // 2] = True                                     # centre pixel
-        q = (out[k2:] * ok).long()                             # 0 where the pixel is off the disc
-        key = torch.add(sel[None, :], q, alpha=1 << 32)        # q << 32 | surfel
-        pix = bs[None, :] + (oy.long() * Wp + ox.long())[:, None]
-        buf.scatter_reduce_(0, pix.view(-1), key.view(-1), reduce="amax")
+        table = {"1": torch.ones_like(ox), "x": ox, "y": oy, "rr": ox * ox + oy * oy,
+                 "xx": ox * ox, "xy": ox * oy, "yy": oy * oy}
+        basis = torch.zeros(nblk * k2, ncoef, device=dev)
+        col = 0
+        for bi, ms in enumerate(monos):
+            basis[bi * k2:(bi + 1) * k2, col:col + len(ms)] = torch.stack([table[m] for m in ms], 1)
+            col += len(ms)
+        offs = (oy.long() * Wp + ox.long())[:, None]
+        buckets.append((sel, per, basis, offs, k2))
+
+    def chunks(b):
+        S = b[1][0].shape[1]
+        step = max(1, _CHUNK // b[4])
+        return ((s0, min(S, s0 + step)) for s0 in range(0, S, step))
+
+    def entries(b, s0, s1):
+        """Entries of surfels ``[s0, s1)`` of bucket ``b``, all ``(k2, S)``: ``t`` clamped at 0,
+        inverse depth, 1/0 inside/outside the footprint, padded pixel."""
+        _, (cf, bs, _, _, _), basis, offs, k2 = b
+        out = torch.mm(basis, cf[:, s0:s1])                    # (nblk k2, S)
+        if cfg.render_exact_discs:
+            inside = out[2 * k2:].sign_().clamp_min_(0.0)
+            inside[k2 // 2] = 1.0                              # centre pixel
+            t = out[:k2].clamp_min_(1e-6).mul_(inside)
+        else:
+            t = out[:k2].clamp_min_(0.0)
+            t[k2 // 2].clamp_min_(1e-6)                        # centre pixel
+            inside = torch.ceil(t)
+        # inverse depth; <= 0 behind the camera (never covers), capped below the stable offset
+        qf = out[k2:2 * k2].clamp_(0.0, float(_Q_MAX))
+        return t, qf, inside, bs[:, s0:s1] + offs
+
+    # ---- pass 1: front surface (z-buffer) --------------------------------------------------------
+    buf = torch.zeros(Hp * Wp, dtype=torch.long, device=dev)
+    for b in buckets:
+        _, (_, _, idk, stb, _), _, _, _ = b
+        for s0, s1 in chunks(b):
+            _, qf, inside, pix = entries(b, s0, s1)
+            zv = (qf + stb[:, s0:s1]).mul_(inside).long()        # 0 off the footprint
+            key = torch.add(idk[:, s0:s1], zv, alpha=1 << 32)    # z-buffer value << 32 | surfel
+            buf.scatter_reduce_(0, pix.view(-1), key.view(-1), reduce="amax")
+    # ---- pass 2: blend the surfels of the front surface ---------------------------------------------
+    # an entry takes part when its z-buffer value exceeds the pixel's threshold
+    # (2^30 if the front is stable) + q_front * z_front / (z_front + tol),
+    # tol = max(tol_mm, tol_rel * z_front): same class as the front, at most tol behind it
+    zbuf = buf >> 32
+    q_front = zbuf & _Q_MAX
+    z_front = q_scale / q_front.clamp_min(1).float()
+    tol = torch.clamp_min(cfg.render_depth_tol_rel * z_front, cfg.render_depth_tol_mm)
+    thr = torch.where(q_front > 0, (zbuf - q_front).float() + q_scale / (z_front + tol), float("inf"))
+    acc = torch.zeros(5, Hp * Wp, device=dev)                  # sum w, w q, w rgb
+    colors = take(store.color, slots).T.contiguous()           # (3, V)
+    for b in buckets:
+        sel, (_, _, _, stb, cq), _, _, _ = b
+        cs = colors if sel is None else colors.index_select(1, sel)
+        for s0, s1 in chunks(b):
+            t, qf, inside, pix = entries(b, s0, s1)
+            pix = pix.view(-1)
+            zv = (qf + stb[:, s0:s1]).mul_(inside)
+            front = zv.sub_(take(thr, pix).view(zv.shape)).sign_().clamp_min_(0.0)
+            w = _int_pow_(t.mul_(front).mul_(cq[:, s0:s1]), k_pow)   # (k2, S)
+            acc[0].scatter_add_(0, pix, w.view(-1))
+            acc[1].scatter_add_(0, pix, (w * qf).view(-1))
+            for c in range(3):
+                acc[2 + c].scatter_add_(0, pix, (w * cs[c:c + 1, s0:s1]).view(-1))
     buf = buf.view(Hp, Wp)[pad:pad + H, pad:pad + W].reshape(-1)
-    qbuf = buf >> 32
-    valid = qbuf > 0
+    acc = acc.view(5, Hp, Wp)[:, pad:pad + H, pad:pad + W].reshape(5, -1)
+    zbuf = buf >> 32
+    valid = zbuf > 0
     vidx = buf & _ID_MASK
-    depth = torch.where(valid, q_scale / qbuf.clamp_min(1).double(), 0.0).float()
     wslots = take(slots, vidx)
+    # pixels whose weights all underflowed (only possible at a footprint's rim) keep the front surfel
+    wsum = acc[0]
+    blended = wsum > 1e-30
+    wsum = wsum.clamp_min(1e-30)
+    z_front = q_scale / (zbuf & _Q_MAX).clamp_min(1).float()
+    depth = torch.where(blended, q_scale * wsum / acc[1].clamp_min(1e-30), torch.where(valid, z_front, 0.0))
+    color = torch.where(blended, acc[2:] / wsum, take(store.color, wslots).T * valid)
     vm = valid[:, None].float()
-    color = take(store.color, wslots) * vm
     normals = take(n, vidx) * vm
-    conf = take(store.conf, wslots) * valid
+    confidence = take(conf, vidx) * valid
     index = torch.where(valid, wslots, -1)
-    return ModelView(color=color.T.reshape(3, H, W), depth=depth.reshape(H, W),
-                     normals=normals.T.reshape(3, H, W), confidence=conf.reshape(H, W),
+    return ModelView(color=color.reshape(3, H, W), depth=depth.reshape(H, W),
+                     normals=normals.T.reshape(3, H, W), confidence=confidence.reshape(H, W),
                      valid=valid.reshape(H, W), index=index.reshape(H, W))
 
 
