@@ -35,7 +35,7 @@ from vo.geometry import backproject
 from vo.lie import se3_log
 from vo.odometry import StereoOdometry, VOConfig
 from vo.residuals import PoseProblem
-from vo.weights import WeightInputs, WeightNetworks, network_inputs, sample_weights
+from vo.weights import INPUT_VERSION, WeightInputs, WeightNetworks, network_inputs, sample_weights
 
 log = logging.getLogger("slam.train")
 
@@ -181,7 +181,8 @@ def sample_pairs(gt: np.ndarray, R1: np.ndarray, cfg: TrainDataConfig, rng: rand
 
 def _cache_key(cfg: TrainConfig, path: Path) -> str:
     relevant = {"seq": str(path.resolve()), "data": asdict(cfg.data), "corr": asdict(cfg.correspondence),
-                "depth": asdict(cfg.depth), "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 1}
+                "depth": asdict(cfg.depth), "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 1,
+                "inputs": INPUT_VERSION}
     return hashlib.sha1(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:12]
 
 
@@ -279,11 +280,13 @@ def training_data(cfg: TrainConfig, progress: bool = True) -> tuple[list[Path], 
 
 
 # ------------------------------------------------------------------------------------- model
-def pose_from_batch(nets: WeightNetworks, batch: dict, cfg: TrainConfig, n2d: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Weights from the networks, then the declarative pose: ``(p* (B, 6), ok (B,))``."""
+def pose_from_batch(nets: WeightNetworks, batch: dict, cfg: TrainConfig, n2d: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Weights from the networks, then the declarative pose: ``(p* (B, 6), ok (B,))``.
+    ``n2d``: channels of the 2D network's input (default: the networks' own)."""
     H, W = batch["size"]
     x3 = batch["x3"]
     module = nets.module if hasattr(nets, "module") else nets
+    n2d = module.in_channels_2d if n2d is None else n2d
     w2_low, w3_low = module.low_res(x3[:, :n2d], x3)
     w2 = sample_weights(w2_low, batch["pix"], H, W) * batch["valid2"]
     w3 = sample_weights(w3_low, batch["pix"], H, W) * batch["valid3"]
@@ -298,7 +301,7 @@ def l1_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor) -> torch
     return (per * ok).sum() / ok.sum().clamp(min=1)
 
 
-def evaluate_loss(nets, samples: list[dict], cfg: TrainConfig, n2d: int,
+def evaluate_loss(nets, samples: list[dict], cfg: TrainConfig, n2d: int | None = None,
                   constant: tuple[float, float] | None = None) -> tuple[float, int]:
     """Mean L1 pose loss over ``samples`` and the number of failed forward passes, with the
     networks' weights or, when ``constant = (w2d, w3d)`` is given, constant weights."""
@@ -327,8 +330,6 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
     """Run the training; returns the path of the best checkpoint."""
     from tqdm import tqdm
 
-    from vo.weights import IN_CHANNELS_2D
-
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     if world > 1:
@@ -352,8 +353,8 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
         model = DistributedDataParallel(nets)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.optim.lr)
 
-    baseline, _ = evaluate_loss(nets, val, cfg, IN_CHANNELS_2D, constant=(1.0, 1.0))
-    best_val, _ = evaluate_loss(nets, val, cfg, IN_CHANNELS_2D)
+    baseline, _ = evaluate_loss(nets, val, cfg, constant=(1.0, 1.0))
+    best_val, _ = evaluate_loss(nets, val, cfg)
     best_state = {k: v.clone() for k, v in nets.state_dict().items()}
     best_epoch, stale = 0, 0
     history = [{"epoch": 0, "val": best_val}]
@@ -368,7 +369,7 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
         losses, failed = [], 0
         for k in range(0, len(perm), cfg.optim.batch_size):
             batch = collate([train_set[m] for m in perm[k:k + cfg.optim.batch_size]])
-            p, ok = pose_from_batch(model, batch, cfg, IN_CHANNELS_2D)
+            p, ok = pose_from_batch(model, batch, cfg)
             failed += int((~ok).sum())
             loss = l1_pose_loss(p, batch["p_gt"], ok)
             opt.zero_grad()
@@ -376,7 +377,7 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
             opt.step()
             losses.append(float(loss.detach()))
         nets.eval()
-        val_loss, val_failed = evaluate_loss(nets, val, cfg, IN_CHANNELS_2D)
+        val_loss, val_failed = evaluate_loss(nets, val, cfg)
         history.append({"epoch": epoch, "train": float(np.mean(losses)), "val": val_loss,
                         "train_failed": failed, "val_failed": val_failed})
         bar.set_postfix(train=f"{np.mean(losses):.5f}", val=f"{val_loss:.5f}", const=f"{baseline:.5f}")
@@ -407,7 +408,7 @@ def save_checkpoint(path: Path, cfg: TrainConfig, state: dict, sequences: list, 
                     best_epoch: int, best_val: float, baseline: float, history: list, t0: float, final: bool) -> None:
     """Write the weights with everything needed to reproduce and use them."""
     meta = {
-        "residuals": cfg.residuals, "downscale": cfg.downscale, "base": cfg.base,
+        "residuals": cfg.residuals, "downscale": cfg.downscale, "base": cfg.base, "inputs": INPUT_VERSION,
         "correspondence": asdict(cfg.correspondence), "image_size": [cfg.data.width, cfg.data.height],
         "max_depth_mm": cfg.depth.max_depth_mm, "train_config": asdict(cfg),
         "data": {"sequences": [str(p) for p in sequences], "pairs_train": n_train, "pairs_val": n_val},

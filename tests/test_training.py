@@ -3,7 +3,8 @@ import torch
 import yaml
 
 from slam.cli import main
-from vo.weights import load_weight_networks
+from vo.weights import (DEPTH_CHANGE_REL, IN_CHANNELS, INPUT_VERSION, WeightInputs, WeightNetworks,
+                        load_weight_networks, network_inputs)
 
 TINY = {
     "residuals": "2d3d",
@@ -34,6 +35,7 @@ def test_training_writes_a_reproducible_usable_checkpoint(tmp_path):
     assert meta["history"][0]["epoch"] == 0 and len(meta["history"]) >= 2
     nets, loaded_meta = load_weight_networks(ckpt, "2d3d")
     assert loaded_meta["val_loss"] == meta["val_loss"]
+    assert meta["inputs"] == INPUT_VERSION and nets.inputs == INPUT_VERSION
     # same seed, same data (the pair cache is reused): the same weights
     again = torch.load(train_once(tmp_path, "b"), weights_only=False)
     for k, v in data["state_dict"].items():
@@ -45,3 +47,34 @@ def test_bad_training_config(tmp_path, capsys):
     path.write_text("optim:\n  epoch: 3\n")
     assert main(["train", "--config", str(path)]) == 2
     assert "unknown key 'optim.epoch'" in capsys.readouterr().err
+
+
+def _inputs(depth_ratio: float = 1.0) -> WeightInputs:
+    g = torch.Generator().manual_seed(0)
+    H, W = 64, 80
+    depth = 0.2 + 0.1 * torch.rand(1, 1, H, W, generator=g)
+    return WeightInputs(torch.rand(1, 3, H, W, generator=g), depth, torch.zeros(1, 2, H, W), torch.zeros(1, 2, H, W),
+                        torch.rand(1, 3, H, W, generator=g), depth / depth_ratio, torch.zeros(1, 2, H, W),
+                        torch.ones(1, 1, H, W, dtype=torch.bool))
+
+
+def test_network_inputs_layouts_and_depth_change():
+    for version, (c2, c3) in IN_CHANNELS.items():
+        x2, x3 = network_inputs(_inputs(), 8, version)
+        assert x2.shape == (1, c2, 8, 10) and x3.shape == (1, c3, 8, 10)
+        assert torch.equal(x2, x3[:, :c2])
+    # the same depth in both views: no change; the current view 1 % farther: asinh(0.01 / scale)
+    assert network_inputs(_inputs(), 8)[1][0, -1].abs().max() < 1e-3  # float32 round-off of the warp
+    change = network_inputs(_inputs(1.0 / 0.99), 8)[1][0, -1]
+    expected = torch.asinh(torch.tensor(0.01 / DEPTH_CHANGE_REL))
+    assert torch.allclose(change[1:-1, 1:-1], expected.expand_as(change[1:-1, 1:-1]), rtol=1e-3)
+
+
+def test_checkpoint_of_the_previous_input_layout_still_loads(tmp_path):
+    old = WeightNetworks(inputs=1)
+    path = tmp_path / "old.pt"
+    torch.save({"state_dict": old.state_dict(), "meta": {"residuals": "2d3d", "downscale": 8, "base": 16}}, path)
+    nets, _ = load_weight_networks(path, "2d3d")
+    assert nets.inputs == 1
+    w2, w3 = nets(_inputs())
+    assert w2.shape == w3.shape == (1, 1, 64, 80)

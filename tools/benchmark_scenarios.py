@@ -3,6 +3,7 @@ and macro averages, for constant and learned weights (ablation).
 
     .venv/bin/python tools/benchmark_scenarios.py [--scenarios breathing scanning deforming]
         [--seeds 9001 9002 9003] [--frames 150] [--size 320x256] [--workers 2] [--out runs/scenarios]
+        [--methods ...] [--checkpoints DIR] [--reuse EARLIER_OUT]
 
 Evaluation seeds (9000+) were fixed before any tuning and are disjoint from the training seeds
 (configs/train.yaml, 1000+). Methods:
@@ -55,7 +56,10 @@ class WeightStats:
         pass
 
     def means(self) -> dict:
-        return {k: (s / n if n else None) for k, (s, n) in self.sums.items()}
+        out = {k: (s / n if n else None) for k, (s, n) in self.sums.items()}
+        total = self.sums["moving"][1] + self.sums["still"][1]
+        out["fraction_moving"] = self.sums["moving"][1] / total if total else None
+        return out
 
 
 def run_one(job: dict) -> dict:
@@ -70,7 +74,11 @@ def run_one(job: dict) -> dict:
     data = Path(job["data"])
     if not (data / "groundtruth.txt").is_file():
         generate(data, job["scenario"], frames=job["frames"], size=tuple(job["size"]), seed=job["seed"])
-    cfg = load_config(None, [*METHODS[job["method"]], "logging.progress=false", *job["extra"]])
+    overrides = list(METHODS[job["method"]])
+    if job.get("checkpoints") and "weights.mode=learned" in overrides:
+        residuals = next(o.split("=", 1)[1] for o in overrides if o.startswith("weights.residuals="))
+        overrides.append(f"weights.checkpoint={Path(job['checkpoints']) / f'weights_{residuals}.pt'}")
+    cfg = load_config(None, [*overrides, "logging.progress=false", *job["extra"]])
     stats = WeightStats() if job["method"] == "learned 2D&3D" else None
     dataset = open_dataset(data, cfg.data)
     result = Pipeline(cfg, dataset, Path(job["out"]), logger=stats).run(progress=False)
@@ -89,7 +97,14 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--out", default="runs/scenarios")
     ap.add_argument("--set", action="append", default=[])
+    ap.add_argument("--checkpoints", default=None,
+                    help="folder with weights_{2d3d,2d,3d}.pt to use instead of the packaged checkpoints")
+    ap.add_argument("--reuse", default=None,
+                    help="folder of an earlier run: its results for the methods not run now fill the table "
+                         "(same sequences and settings assumed, e.g. the constant-weight rows)")
     args = ap.parse_args()
+    # repeated names would run (and report) the same sequence twice
+    args.scenarios, args.seeds, args.methods = (list(dict.fromkeys(v)) for v in (args.scenarios, args.seeds, args.methods))
     w, h = (int(v) for v in args.size.split("x"))
     out = Path(args.out)
     jobs = []
@@ -98,7 +113,7 @@ def main() -> None:
             data = out / "data" / f"{scenario}_s{seed}_{args.size}_{args.frames}"
             for method in args.methods:
                 jobs.append({"scenario": scenario, "seed": seed, "method": method, "data": str(data),
-                             "frames": args.frames, "size": [w, h], "extra": args.set,
+                             "frames": args.frames, "size": [w, h], "extra": args.set, "checkpoints": args.checkpoints,
                              "out": str(out / "runs" / f"{scenario}_s{seed}_{method.replace(' ', '_').replace('&', 'and')}")})
     # generate each sequence once before the workers share it
     from slam.synth import generate
@@ -108,7 +123,17 @@ def main() -> None:
             generate(job["data"], job["scenario"], frames=job["frames"], size=(w, h), seed=job["seed"])
     with ProcessPoolExecutor(args.workers) as pool:
         results = list(pool.map(run_one, jobs))
-    table = format_table(results, args.scenarios, args.methods)
+    methods = args.methods
+    if args.reuse:
+        done = {(r["scenario"], r["seed"], r["method"]) for r in results}
+        old = json.loads((Path(args.reuse) / "scenarios.json").read_text())
+        old = [r for r in old if r["scenario"] in args.scenarios and r["seed"] in args.seeds
+               and (r["scenario"], r["seed"], r["method"]) not in done]
+        results += old
+        methods = [m for m in METHODS if m in {r["method"] for r in results}]
+    table = format_table(results, args.scenarios, methods)
+    table += "\n\nRelative pose error, translation (mm per frame):\n\n"
+    table += format_table(results, args.scenarios, methods, metric="rpe_trans_mm", digits=3)
     print(table)
     weights = weight_check(results)
     if weights:
@@ -118,29 +143,39 @@ def main() -> None:
     (out / "scenarios.json").write_text(json.dumps(results, indent=2))
 
 
-def format_table(results: list[dict], scenarios: list[str], methods: list[str]) -> str:
+def format_table(results: list[dict], scenarios: list[str], methods: list[str], metric: str = "ate_rmse_mm",
+                 digits: int = 2) -> str:
+    """Mean ± std per scenario, micro and macro averages of ``metric`` (ATE-RMSE by default)."""
     header = "| method | " + " | ".join(scenarios) + " | micro avg. | macro avg. |"
     counts = "| # sequences | " + " | ".join(str(len({r['seed'] for r in results if r['scenario'] == s})) for s in scenarios) + " | | |"
     lines = [header, "|---" * (len(scenarios) + 3) + "|", counts]
     for m in methods:
-        per = {s: [r["ate_rmse_mm"] for r in results if r["method"] == m and r["scenario"] == s] for s in scenarios}
+        per = {s: [r[metric] for r in results if r["method"] == m and r["scenario"] == s] for s in scenarios}
         allv = [v for vs in per.values() for v in vs]
         means = [np.mean(per[s]) for s in scenarios]
-        cells = [f"{np.mean(per[s]):.2f} ± {np.std(per[s]):.2f}" for s in scenarios]
-        cells += [f"{np.mean(allv):.2f} ± {np.std(allv):.2f}", f"{np.mean(means):.2f} ± {np.std(means):.2f}"]
+        f = f".{digits}f"
+        cells = [f"{np.mean(per[s]):{f}} ± {np.std(per[s]):{f}}" for s in scenarios]
+        cells += [f"{np.mean(allv):{f}} ± {np.std(allv):{f}}", f"{np.mean(means):{f}} ± {np.std(means):{f}}"]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 def weight_check(results: list[dict]) -> str:
-    lines = []
+    """One row per breathing / deforming sequence (each sequence once, in scenario and seed order)."""
+    rows = {}
     for r in results:
         if r["w3d"] and r["scenario"] in ("breathing", "deforming") and r["w3d"]["moving"] is not None:
-            ratio = r["w3d"]["moving"] / max(r["w3d"]["still"], 1e-12)
-            lines.append(f"| {r['scenario']} s{r['seed']} | {r['w3d']['moving']:.4f} | {r['w3d']['still']:.4f} | {ratio:.2f} |")
+            rows[(r["scenario"], r["seed"])] = r["w3d"]
+    lines = []
+    for (scenario, seed), w in sorted(rows.items()):
+        ratio = w["moving"] / max(w["still"], 1e-12)
+        frac = w.get("fraction_moving")
+        frac = f"{frac:.2f}" if frac is not None else "-"
+        lines.append(f"| {scenario} s{seed} | {frac} | {w['moving']:.4f} | {w['still']:.4f} | {ratio:.2f} |")
     if not lines:
         return ""
-    return "\n".join(["| sequence | mean w3D, non-rigid > 0.5 mm | mean w3D, other | ratio |", "|---|---|---|---|", *lines])
+    return "\n".join(["| sequence | share of pixels non-rigid > 0.5 mm | mean w3D, non-rigid | mean w3D, other | ratio |",
+                      "|---|---|---|---|---|", *lines])
 
 
 if __name__ == "__main__":

@@ -1,13 +1,18 @@
 """The weight maps w2D and w3D (paper eqs. 4-5): two small UNets with sigmoid outputs, run at a
 reduced resolution and upsampled, and the constant alternative.
 
-Inputs of the networks (all at 1/``downscale`` of the image, area-averaged):
+Inputs of the networks (all at 1/``downscale`` of the image, area-averaged), layout version 2:
 - w2D: pixel coordinates (2, in [-1, 1]), current image I_t (3), current depth D_t / D_max (1),
-  temporal flow F_t (2), stereo parallax flow F'_t (2), valid mask (1): 11 channels.
-- w3D: the same 11, plus the reference image I_ref (3), its depth D_ref / D_max (1) and its parallax
-  flow F'_ref (2): 17 channels. The reference inputs are warped by the flow onto the current pixel
-  grid (the paper feeds them unwarped; aligned inputs let a small network compare the two views
-  pixel by pixel, which is how it can see deforming tissue).
+  temporal flow F_t (2), stereo parallax flow F'_t (2), valid mask (1), and the temporal flow again
+  on a sub-pixel scale, ``asinh(F_t / 0.5 px)`` (2): 13 channels.
+- w3D: the same 13, plus the reference image I_ref (3), its depth D_ref / D_max (1) and its parallax
+  flow F'_ref (2), warped by the flow onto the current pixel grid (the paper feeds them unwarped;
+  aligned inputs let a small network compare the two views pixel by pixel), and the relative depth
+  change ``asinh((D_t - D_ref(x + F_t)) / D_t / 0.003)`` computed at full resolution where both
+  depths are valid (1): 20 channels.
+The last two groups make the non-rigid motion visible at the scale it has between frames (about
+0.02-0.1 mm, 0.1-0.4 px at 25 fps on our synthetic tissue); on the version-1 scales (kept for old
+checkpoints: 11 and 17 channels, without them) a 0.06 mm depth change is 2e-4 of the depth input.
 Flows are scaled by ``20 / W`` (a flow of 5 % of the width is 1); the vertical parallax by ``W0 / (2 W)``
 with ``W0 = 640`` (2 px at the paper's resolution is 1).
 """
@@ -23,8 +28,11 @@ import torch.nn.functional as F
 
 from vo.geometry import sample_by_flow
 
-IN_CHANNELS_2D = 11
-IN_CHANNELS_3D = 17
+INPUT_VERSION = 2
+IN_CHANNELS = {1: (11, 17), 2: (13, 20)}  # input layout version -> (w2D, w3D) channels
+IN_CHANNELS_2D, IN_CHANNELS_3D = IN_CHANNELS[INPUT_VERSION]
+FLOW_FINE_PX = 0.5  # sub-pixel flow scale of the version-2 inputs
+DEPTH_CHANGE_REL = 0.003  # relative depth change scale (0.2 mm at 70 mm, the stereo noise at 1/8)
 CHECKPOINT_DIR = Path(__file__).parent / "checkpoints"
 
 
@@ -62,13 +70,17 @@ def _downsample(x: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
     return F.adaptive_avg_pool2d(x, size) if x.shape[-2:] != size else x
 
 
-def network_inputs(inp: WeightInputs, downscale: int) -> tuple[torch.Tensor, torch.Tensor]:
+def network_inputs(inp: WeightInputs, downscale: int, version: int = INPUT_VERSION) -> tuple[torch.Tensor, torch.Tensor]:
     """Assemble the inputs at reduced resolution (everything is area-averaged first, then the
-    reference maps are warped by the downsampled flow, which keeps this step cheap).
+    reference maps are warped by the downsampled flow, which keeps this step cheap; the relative
+    depth change of version 2 is formed at full resolution, then averaged).
 
     Returns:
-        ``x2d`` ``(B, 11, h, w)`` and ``x3d`` ``(B, 17, h, w)`` with ``h = ceil(H / downscale)``.
+        ``x2d`` ``(B, C2, h, w)`` and ``x3d`` ``(B, C3, h, w)`` with ``h = ceil(H / downscale)`` and
+        ``(C2, C3) = IN_CHANNELS[version]``; ``x2d`` is the first ``C2`` channels of ``x3d``.
     """
+    if version not in IN_CHANNELS:
+        raise ValueError(f"unknown weight-network input version {version}")
     B, _, H, W = inp.image_cur.shape
     h, w = -(-H // downscale), -(-W // downscale)
     dtype, device = inp.flow.dtype, inp.flow.device
@@ -81,8 +93,17 @@ def network_inputs(inp: WeightInputs, downscale: int) -> tuple[torch.Tensor, tor
     ref = _downsample(torch.cat([inp.image_ref, inp.depth_ref, _scale_parallax(inp.parallax_ref, W)], 1), (h, w))
     flow_low = torch.stack([flow[:, 0] * (w / W), flow[:, 1] * (h / H)], 1)
     ref_warped = sample_by_flow(ref, flow_low)
-    x3 = torch.cat([coords, cur, ref_warped], 1)
-    return x3[:, :IN_CHANNELS_2D], x3
+    if version == 1:
+        x3 = torch.cat([coords, cur, ref_warped], 1)
+        return x3[:, :IN_CHANNELS[1][0]], x3
+    flow_fine = torch.asinh(flow / FLOW_FINE_PX)
+    # relative depth change between the views along the flow (zero where either depth is invalid)
+    warped = sample_by_flow(torch.cat([inp.depth_ref, (inp.depth_ref > 0).to(dtype)], 1), inp.flow)
+    both = inp.valid & (inp.depth_cur > 0) & (warped[:, 1:2] > 0.999)
+    rel = torch.where(both, (inp.depth_cur - warped[:, 0:1]) / inp.depth_cur.clamp(min=1e-6), torch.zeros_like(inp.depth_cur))
+    change = torch.asinh(_downsample(rel, (h, w)) / DEPTH_CHANGE_REL)
+    x3 = torch.cat([coords, cur, flow_fine, ref_warped, change], 1)
+    return x3[:, :IN_CHANNELS[2][0]], x3
 
 
 class _Block(nn.Sequential):
@@ -128,18 +149,23 @@ class WeightNetworks(nn.Module):
         downscale: the networks run at 1/downscale resolution; outputs are bilinearly upsampled.
         residuals: ``2d3d`` | ``2d`` | ``3d`` (the unused map is zero).
         initial_w2d, initial_w3d: the networks' outputs at initialisation (their last bias).
+        inputs: input layout version (see :func:`network_inputs`; checkpoints record theirs).
     """
 
     def __init__(self, downscale: int = 8, residuals: str = "2d3d", base: int = 16,
-                 initial_w2d: float = 0.5, initial_w3d: float = 0.02):
+                 initial_w2d: float = 0.5, initial_w3d: float = 0.02, inputs: int = INPUT_VERSION):
         super().__init__()
+        if inputs not in IN_CHANNELS:
+            raise ValueError(f"unknown weight-network input version {inputs}")
         self.downscale = downscale
         self.residuals = residuals
+        self.inputs = inputs
+        self.in_channels_2d, in3 = IN_CHANNELS[inputs]
         # The 3D residual is far larger than the 2D one for the same error (the constant sweep's
         # best balance is w3d/w2d = 0.01, the paper reports a factor ~100 too): the 3D network
         # starts near that balance instead of 1:1.
-        self.net2d = WeightUNet(IN_CHANNELS_2D, base, initial_w2d)
-        self.net3d = WeightUNet(IN_CHANNELS_3D, base, initial_w3d)
+        self.net2d = WeightUNet(self.in_channels_2d, base, initial_w2d)
+        self.net3d = WeightUNet(in3, base, initial_w3d)
 
     def low_res(self, x2: torch.Tensor, x3: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Weight maps at the networks' resolution, ``(B, 1, h, w)`` each (zero for an unused residual)."""
@@ -152,7 +178,7 @@ class WeightNetworks(nn.Module):
     def forward(self, inp: WeightInputs) -> tuple[torch.Tensor, torch.Tensor]:
         """``(w2d, w3d)``, each ``(B, 1, H, W)`` in [0, 1], zero on invalid pixels."""
         H, W = inp.image_cur.shape[-2:]
-        x2, x3 = network_inputs(inp, self.downscale)
+        x2, x3 = network_inputs(inp, self.downscale, self.inputs)
         valid = inp.valid.to(inp.flow.dtype)
         zero = torch.zeros_like(valid)
 
@@ -219,7 +245,7 @@ def load_weight_networks(path: str | Path | None, residuals: str, device: str = 
     ckpt = torch.load(path, map_location=device, weights_only=False)
     meta = ckpt.get("meta", {})
     nets = WeightNetworks(downscale=int(meta.get("downscale", 8)), residuals=meta.get("residuals", residuals),
-                          base=int(meta.get("base", 16)))
+                          base=int(meta.get("base", 16)), inputs=int(meta.get("inputs", 1)))
     nets.load_state_dict(ckpt["state_dict"])
     nets.residuals = residuals
     return nets.to(device).eval(), meta
