@@ -36,6 +36,9 @@ class TrackingConfig:
         fuse_weight: per-pixel fusion weight: ``w3d`` (learned 3D weight, normalised per frame,
             when available) or ``uniform``.
         export_map: fuse a map in frame2frame too (without tracking against it) and export it.
+        poses: ``estimated`` (track) or ``groundtruth``: skip tracking, take the dataset's
+            ground-truth poses and fuse the map with them (mapping on its own, e.g. to measure
+            the map's accuracy apart from tracking); needs ground truth, implies ``export_map``.
     """
 
     mode: str = "frame2frame"
@@ -43,6 +46,7 @@ class TrackingConfig:
     min_model_coverage: float = 0.5
     fuse_weight: str = "w3d"
     export_map: bool = False
+    poses: str = "estimated"
 
 
 @dataclass
@@ -102,6 +106,7 @@ CHOICES = {
     "tracking.mode": ("frame2frame", "frame2model"),
     "tracking.flow_reference": ("last_frame", "rendered"),
     "tracking.fuse_weight": ("w3d", "uniform"),
+    "tracking.poses": ("estimated", "groundtruth"),
 }
 
 

@@ -94,7 +94,10 @@ class Pipeline:
         self.odometry = StereoOdometry(self.camera, config.vo(), device=config.device)
         mode = config.tracking.mode
         self.map = None
-        if mode == "frame2model" or config.tracking.export_map:
+        self.gt_poses_only = config.tracking.poses == "groundtruth"
+        if self.gt_poses_only and dataset.gt_poses is None:
+            raise SlamError(f"{dataset.path}: tracking.poses=groundtruth needs a ground-truth trajectory")
+        if mode == "frame2model" or config.tracking.export_map or self.gt_poses_only:
             from mapping import SurfelMap
 
             self.map = SurfelMap(config.map, device=config.device)
@@ -123,7 +126,7 @@ class Pipeline:
             self.fallbacks += 1
             log.info("model view covers %.0f%% of the image: tracking against the previous frame", 100 * coverage)
             return last_view, None, "previous_frame"
-        ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid)
+        ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=last_view)
         flow_ref = last_view if self.config.tracking.flow_reference == "last_frame" else None
         return ref, flow_ref, "model"
 
@@ -199,6 +202,12 @@ class Pipeline:
         view = self.odometry.make_view(frame.left, frame.right, frame.mask, gt_depth, timings)
         for stage, ms in timings.items():
             self._time(stage, ms)
+        if self.gt_poses_only:
+            pose_rect = frame.gt_pose @ self.R1.T
+            rec = FrameRecord(index, stamp, frame.gt_pose, False, reference="groundtruth")
+            self._fuse(view, None, pose_rect, index)
+            self._log(k, frame, view, None, pose_rect, rec)
+            return rec, pose_rect, view
         if last_view is None:
             rec = FrameRecord(index, stamp, pose_rect @ self.R1, False, reference="first")
             self._fuse(view, None, pose_rect, index)
@@ -250,7 +259,7 @@ class Pipeline:
         if gt_sel is not None and done >= 2:
             metrics.update(evaluate(gt_sel, est))
         files = {"trajectory": str(self.out_dir / "trajectory.txt"), "config": str(self.out_dir / "config.yaml")}
-        if self.map is not None and (self.config.tracking.mode == "frame2model" or self.config.tracking.export_map):
+        if self.map is not None:
             ply = self.out_dir / "map.ply"
             # the map lives in the rectified world frame of the VO, which is the world frame: only
             # camera frames are rotated by R1, the world is shared.

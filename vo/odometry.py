@@ -162,17 +162,24 @@ class StereoOdometry:
             timings["stereo"] = (time.perf_counter() - t0) * 1000.0
         return View(image=img_l, gray=gray_l, depth=depth, valid=valid, parallax=parallax)
 
-    def view_from_render(self, color: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor) -> View:
+    def view_from_render(self, color: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor,
+                         background: View | None = None) -> View:
         """A reference view from a rendered model view.
 
         Args:
             color: ``(3, H, W)`` RGB in [0, 1]; depth: ``(H, W)`` mm; valid: ``(H, W)`` bool.
+            background: a real view at the same pose (the last frame) whose colour fills the
+                pixels the model does not cover, so that the flow has no artificial edge there
+                (those pixels get 2D residuals only: the reference depth comes from the model).
         """
         dcfg = self.config.depth
         depth = depth[None, None].to(self.device).float()
-        valid = valid[None, None].to(self.device) & (depth >= dcfg.min_depth_mm) & (depth <= dcfg.max_depth_mm)
+        covered = valid[None, None].to(self.device)
+        valid = covered & (depth >= dcfg.min_depth_mm) & (depth <= dcfg.max_depth_mm)
         depth = torch.where(valid, depth, torch.zeros_like(depth))
         image = color[None].to(self.device).float().clamp(0, 1)
+        if background is not None:
+            image = torch.where(covered, relight(image, background.image, covered), background.image)
         return View(image=image, gray=to_gray_u8(image[0]), depth=depth, valid=valid,
                     parallax=parallax_from_depth(depth, self.camera.depth_from_disparity_scale()))
 
@@ -292,3 +299,26 @@ class StereoOdometry:
             self.previous_relative = result.relative
             self.reference = view
         return result
+
+
+def relight(image: torch.Tensor, target: torch.Tensor, covered: torch.Tensor, sigma_frac: float = 0.03) -> torch.Tensor:
+    """Match the low-frequency shading of ``image`` to ``target`` (a view at the same pose).
+
+    A rendered model view averages colours seen under lights at other positions (the light rides
+    on the endoscope); a smooth per-channel gain, the ratio of the two images blurred over
+    ``covered`` pixels (normalised convolution), gives it the current light without moving edges.
+
+    Args:
+        image, target: ``(1, 3, H, W)`` RGB in [0, 1]; covered: ``(1, 1, H, W)`` bool.
+    """
+    import kornia
+
+    H, W = image.shape[-2:]
+    sigma = max(1.0, sigma_frac * max(H, W))
+    k = int(2 * round(3 * sigma) + 1)
+    m = covered.float()
+    blur = lambda x: kornia.filters.gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="replicate")
+    den = blur(m).clamp_min(1e-3)
+    gain = (blur(target * m) / den + 1e-3) / (blur(image * m) / den + 1e-3)
+    return (image * gain.clamp(0.25, 4.0)).clamp(0, 1)
+
