@@ -36,9 +36,10 @@ class TrackingConfig:
         fuse_weight: per-pixel fusion weight: ``w3d`` (learned 3D weight, normalised per frame,
             when available) or ``uniform``.
         export_map: fuse a map in frame2frame too (without tracking against it) and export it.
-        poses: ``estimated`` (track) or ``groundtruth``: skip tracking, take the dataset's
-            ground-truth poses and fuse the map with them (mapping on its own, e.g. to measure
-            the map's accuracy apart from tracking); needs ground truth, implies ``export_map``.
+        poses: ``estimated`` (track) or ``groundtruth``: take the dataset's ground-truth poses
+            and fuse the map with them (mapping on its own, e.g. to measure the map's accuracy
+            apart from tracking); needs ground truth, implies ``export_map``. With learned
+            weights each frame is still matched to the previous one, for its w3D fusion weight.
     """
 
     mode: str = "frame2frame"

@@ -205,8 +205,9 @@ class Pipeline:
         if self.gt_poses_only:
             pose_rect = frame.gt_pose @ self.R1.T
             rec = FrameRecord(index, stamp, frame.gt_pose, False, reference="groundtruth")
-            self._fuse(view, None, pose_rect, index)
-            self._log(k, frame, view, None, pose_rect, rec)
+            track = self._weights_only(view, last_view)
+            self._fuse(view, track, pose_rect, index)
+            self._log(k, frame, view, track, pose_rect, rec)
             return rec, pose_rect, view
         if last_view is None:
             rec = FrameRecord(index, stamp, pose_rect @ self.R1, False, reference="first")
@@ -226,6 +227,21 @@ class Pipeline:
         self._fuse(view, track, new_pose, index)
         self._log(k, frame, view, track, new_pose, rec)
         return rec, new_pose, view
+
+    def _weights_only(self, view: View, last_view: Optional[View]) -> Optional[TrackResult]:
+        """With known poses, track against the previous frame only for its weight maps.
+
+        The learned w3D is what keeps badly matched depth, moving tissue and instruments out of the
+        map, so a map fused with ground-truth poses still wants it; the estimated pose is dropped.
+        Returns None where there is nothing to gain (constant weights, first frame, failure).
+        """
+        if (last_view is None or self.odometry.weight_networks is None
+                or self.config.tracking.fuse_weight != "w3d" or self.config.weights.residuals == "2d"):
+            return None
+        track = self.odometry.track(view, last_view, last_view)
+        for stage, ms in track.timings_ms.items():
+            self._time(stage, ms)
+        return None if track.failed else track
 
     def _log(self, k, frame, view, track, pose_rect, record) -> None:
         if self.logger is not None:
