@@ -30,7 +30,11 @@ class TrackingConfig:
             surfel map rendered at the last pose).
         flow_reference: in frame2model, the image the temporal flow is computed against:
             ``last_frame`` (the last real frame, at the reference pose, lit like the current one)
-            or ``rendered`` (the model's colour, as the paper).
+            or ``rendered`` (the model's colour, as the paper) or ``chained`` (the last frame,
+            then on into the model view by ``chain_gain`` x the smoothed flow last frame ->
+            model view, which measures the last frame's pose error against the map).
+        chain_gain: the fraction of the last frame's measured offset from the map removed per
+            frame with ``flow_reference: chained`` (below 1: the render's flow noise is damped).
         min_model_coverage: below this fraction of valid rendered pixels the model view is too
             empty and the previous frame is the reference for that step.
         fuse_weight: per-pixel fusion weight: ``w3d`` (learned 3D weight, normalised per frame,
@@ -44,6 +48,7 @@ class TrackingConfig:
 
     mode: str = "frame2frame"
     flow_reference: str = "last_frame"
+    chain_gain: float = 0.25
     min_model_coverage: float = 0.5
     fuse_weight: str = "w3d"
     export_map: bool = False
@@ -105,7 +110,7 @@ CHOICES = {
     "weights.mode": ("learned", "constant"),
     "weights.residuals": ("2d3d", "2d", "3d"),
     "tracking.mode": ("frame2frame", "frame2model"),
-    "tracking.flow_reference": ("last_frame", "rendered"),
+    "tracking.flow_reference": ("last_frame", "rendered", "chained"),
     "tracking.fuse_weight": ("w3d", "uniform"),
     "tracking.poses": ("estimated", "groundtruth"),
 }
@@ -220,6 +225,7 @@ def validate(config: SlamConfig) -> None:
         (config.data.width >= 0 and config.data.height >= 0, "data.width/height must be >= 0"),
         ((config.data.width == 0) == (config.data.height == 0), "data.width and data.height: set both or neither"),
         (0.0 <= config.tracking.min_model_coverage <= 1.0, "tracking.min_model_coverage must be in [0, 1]"),
+        (0.0 <= config.tracking.chain_gain <= 1.0, "tracking.chain_gain must be in [0, 1]"),
         (config.weights.w2d >= 0 and config.weights.w3d >= 0, "weights.w2d/w3d must be >= 0"),
     ]
     for ok, message in checks:

@@ -127,7 +127,7 @@ class Pipeline:
             log.info("model view covers %.0f%% of the image: tracking against the previous frame", 100 * coverage)
             return last_view, None, "previous_frame"
         ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=last_view)
-        flow_ref = last_view if self.config.tracking.flow_reference == "last_frame" else None
+        flow_ref = last_view if self.config.tracking.flow_reference in ("last_frame", "chained") else None
         return ref, flow_ref, "model"
 
     def _fuse(self, view: View, result: Optional[TrackResult], pose_rect: np.ndarray, index: int) -> None:
@@ -215,7 +215,8 @@ class Pipeline:
             self._log(k, frame, view, None, pose_rect, rec)
             return rec, pose_rect, view
         ref, flow_ref, kind = self._reference(last_view, pose_rect)
-        track = self.odometry.track(view, ref, flow_ref)
+        chained = kind == "model" and self.config.tracking.flow_reference == "chained"
+        track = self.odometry.track(view, ref, flow_ref, chain_gain=self.config.tracking.chain_gain if chained else 0.0)
         for stage, ms in track.timings_ms.items():
             self._time(stage, ms)
         if track.failed:

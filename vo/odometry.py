@@ -211,7 +211,8 @@ class StereoOdometry:
         points_ref = sample_by_flow(backproject(ref.depth / dmax, self.K), flow)
         return target, valid, valid3, points_ref
 
-    def track(self, cur: View, ref: View, flow_ref: View | None = None, T_init: np.ndarray | None = None) -> TrackResult:
+    def track(self, cur: View, ref: View, flow_ref: View | None = None, T_init: np.ndarray | None = None,
+              chain_gain: float = 0.0) -> TrackResult:
         """Estimate the transform from ``cur``'s camera to ``ref``'s camera.
 
         Args:
@@ -220,8 +221,17 @@ class StereoOdometry:
             flow_ref: the view the temporal flow is computed against (default ``ref``); in
                 frame2model it can be the last real frame, which sits at the reference pose.
             T_init: ``(4, 4)`` mm initial guess (identity when None).
+            chain_gain: with ``flow_ref``, follow the temporal flow ``cur -> flow_ref`` on by
+                ``chain_gain`` x the (smoothed) flow ``flow_ref -> ref``, so that correspondences
+                move towards the pixels of ``ref`` that show the same surface points. In
+                frame2model the last real frame and the model view share the *estimated* pose, but
+                the real frame was taken at the true one: without the chain its pose error is
+                handed on to the next frame; the short flow between two views of the same pose
+                measures it, and a gain below 1 removes it over a few frames while damping the
+                render's flow noise (a complementary filter). 0: no chain.
         """
         timings: dict = {}
+        chain = chain_gain > 0 and flow_ref is not None and flow_ref is not ref
         flow_ref = flow_ref or ref
         t0 = time.perf_counter()
         flow = self._flow(self.temporal_flow, cur.image, cur.gray, flow_ref.image, flow_ref.gray)
@@ -229,6 +239,13 @@ class StereoOdometry:
         if self.config.correspondence.fb_check_px > 0:
             back = self._flow(self.temporal_flow, flow_ref.image, flow_ref.gray, cur.image, cur.gray)
             fb_ok = flow_consistency(flow, back, self.config.correspondence.fb_check_px)
+        if chain:
+            to_ref = self._flow(self.temporal_flow, flow_ref.image, flow_ref.gray, ref.image, ref.gray)
+            # a pose offset moves a smooth surface smoothly: keep the field's low frequencies only
+            # (the render's blur and shading make the per-pixel flow noisy)
+            to_ref = masked_blur(to_ref, ref.valid & flow_ref.valid, 0.05) * chain_gain
+            flow, on_ref = chain_flows(flow, to_ref, ref.valid)
+            fb_ok = on_ref if fb_ok is None else fb_ok & on_ref
         t1 = time.perf_counter()
         target, valid, valid3, points_ref = self.build_problem(cur, ref, flow, fb_ok)
         w2d, w3d = self._weights(cur, ref, flow, valid)
@@ -311,14 +328,38 @@ def relight(image: torch.Tensor, target: torch.Tensor, covered: torch.Tensor, si
     Args:
         image, target: ``(1, 3, H, W)`` RGB in [0, 1]; covered: ``(1, 1, H, W)`` bool.
     """
-    import kornia
-
-    H, W = image.shape[-2:]
-    sigma = max(1.0, sigma_frac * max(H, W))
-    k = int(2 * round(3 * sigma) + 1)
-    m = covered.float()
-    blur = lambda x: kornia.filters.gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="replicate")
-    den = blur(m).clamp_min(1e-3)
-    gain = (blur(target * m) / den + 1e-3) / (blur(image * m) / den + 1e-3)
+    gain = (masked_blur(target, covered, sigma_frac) + 1e-3) / (masked_blur(image, covered, sigma_frac) + 1e-3)
     return (image * gain.clamp(0.25, 4.0)).clamp(0, 1)
 
+
+def masked_blur(x: torch.Tensor, mask: torch.Tensor, sigma_frac: float) -> torch.Tensor:
+    """Gaussian blur of ``x`` ``(B, C, H, W)`` over the pixels of ``mask`` ``(B, 1, H, W)`` only
+    (normalised convolution), sigma ``sigma_frac`` of the image's larger side."""
+    import kornia
+
+    H, W = x.shape[-2:]
+    sigma = max(1.0, sigma_frac * max(H, W))
+    k = int(2 * round(3 * sigma) + 1)
+    m = mask.to(x.dtype)
+    blur = lambda t: kornia.filters.gaussian_blur2d(t, (k, k), (sigma, sigma), border_type="replicate")
+    return blur(x * m) / blur(m).clamp_min(1e-3)
+
+
+
+def chain_flows(a_to_b: torch.Tensor, b_to_c: torch.Tensor, c_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Compose two flows: ``x -> x + a_to_b(x) -> that + b_to_c(that)``.
+
+    Args:
+        a_to_b: ``(B, 2, H, W)`` flow on view a's grid into view b.
+        b_to_c: ``(B, 2, H, W)`` flow on view b's grid into view c.
+        c_valid: ``(B, 1, H, W)`` bool valid pixels of view c.
+
+    Returns:
+        (``(B, 2, H, W)`` flow on a's grid into c, ``(B, 1, H, W)`` bool where the chain stays inside
+        both images and lands on valid pixels of c).
+    """
+    B, _, H, W = a_to_b.shape
+    mid = pixel_grid(H, W, a_to_b.device, a_to_b.dtype) + a_to_b
+    inside = (mid[:, 0:1] >= 0) & (mid[:, 0:1] <= W - 1) & (mid[:, 1:2] >= 0) & (mid[:, 1:2] <= H - 1)
+    flow = a_to_b + sample_by_flow(b_to_c, a_to_b)
+    return flow, inside & sample_valid_by_flow(c_valid, flow)
