@@ -20,6 +20,7 @@ import torch
 
 from slam.config import SlamConfig, save_config
 from slam.errors import DataError, SlamError
+from slam.prefetch import Prefetcher
 from slam.tum import TumStreamWriter
 from vo.odometry import StereoOdometry, TrackResult, View
 
@@ -156,13 +157,14 @@ class Pipeline:
         n = len(self.dataset)
         writer = TumStreamWriter(self.out_dir / "trajectory.txt")
         bar = tqdm(total=n, unit="frame", disable=not progress, dynamic_ncols=True, leave=False)
+        reader = Prefetcher(self.dataset.frame, n)
         t_start = time.perf_counter()
         try:
             for k in range(n):
                 t_frame = time.perf_counter()
                 index = int(self.dataset.indices[k])
                 stamp = float(self.dataset.timestamps[k])
-                record, pose_rect, last_view = self._step(k, index, stamp, last_view, pose_rect)
+                record, pose_rect, last_view = self._step(k, index, stamp, last_view, pose_rect, reader)
                 if record.failed:
                     log.warning("frame %d: %s (pose carried over)", index, record.reason)
                 writer.write(stamp, record.pose)
@@ -175,6 +177,7 @@ class Pipeline:
             result.interrupted = True
             log.warning("interrupted after %d frames; results so far are written", len(result.records))
         finally:
+            reader.close()
             bar.close()
             writer.close()
         wall = time.perf_counter() - t_start
@@ -182,7 +185,7 @@ class Pipeline:
         return result
 
     def _step(self, k: int, index: int, stamp: float, last_view: Optional[View],
-              pose_rect: np.ndarray) -> tuple[FrameRecord, np.ndarray, Optional[View]]:
+              pose_rect: np.ndarray, reader: Prefetcher) -> tuple[FrameRecord, np.ndarray, Optional[View]]:
         """Read, track and fuse one frame.
 
         Returns the frame's record and the new (rectified pose, last good view); a frame that cannot
@@ -190,7 +193,7 @@ class Pipeline:
         """
         try:
             t0 = time.perf_counter()
-            frame = self.dataset.frame(k)
+            frame = reader.get(k)   # read ahead in a thread: this is the time spent waiting for it
             self._time("read", (time.perf_counter() - t0) * 1000.0)
         except DataError as err:
             return FrameRecord(index, stamp, pose_rect @ self.R1, True, f"unreadable frame: {err}"), pose_rect, last_view
