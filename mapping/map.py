@@ -63,10 +63,11 @@ class SurfelMap:
         return stats
 
     # ------------------------------------------------------------------ rendering
-    def render(self, K, T_wc, height: int, width: int, stable_only: bool = False) -> ModelView:
-        """Splat the map into a ``height x width`` view from ``T_wc`` (see :class:`ModelView`)."""
+    def render(self, K, T_wc, height: int, width: int, stable_only: bool = False, colour: bool = True) -> ModelView:
+        """Splat the map into a ``height x width`` view from ``T_wc`` (see :class:`ModelView`);
+        ``colour=False``: depth, normals and confidence only (the colour is left zero)."""
         timer = _Timer(self.profile, self.device)
-        view, nvis = render(self.store, self.config, K, T_wc, int(height), int(width), stable_only)
+        view, nvis = render(self.store, self.config, K, T_wc, int(height), int(width), stable_only, colour)
         timer.lap("render")
         if self.profile:
             self.last_timings = {**self.last_timings, **timer.times, "render_visible": float(nvis)}

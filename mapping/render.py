@@ -31,7 +31,7 @@ class ModelView:
     """The map rendered from one camera.
 
     Attributes:
-        color: ``(3, H, W)`` float32 RGB in [0, 1] (0 where empty).
+        color: ``(3, H, W)`` float32 RGB in [0, 1] (0 where empty; all 0 if rendered without colour).
         depth: ``(H, W)`` float32 depth along the optical axis, mm (0 where empty).
         normals: ``(3, H, W)`` float32 unit normals in the camera frame (0 where empty).
         confidence: ``(H, W)`` float32 confidence of the visible surfel (0 where empty).
@@ -264,8 +264,12 @@ def _int_pow_(x: torch.Tensor, k: int) -> torch.Tensor:
     return x.mul_(rest) if rest is not None else x
 
 
-def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig) -> ModelView:
+def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colour: bool = True) -> ModelView:
     """Two-pass surface splatting of the visible surfels into a ``(H, W)`` view.
+
+    ``colour=False`` skips the colour (``ModelView.color`` is all zero): tracking that takes its
+    image from the last real frame needs only the model's depth, and colour is 3 of the 5 blended
+    channels.
 
     Every surfel is expanded into the ``(2h + 1)^2`` pixel offsets ``(ox, oy)`` around its centre
     pixel (``h`` from its footprint radius, surfels grouped by ``h``).  For an offset, the inverse
@@ -452,11 +456,12 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig) -> M
     z_front = q_scale / q_front.clamp_min(1).float()
     tol = torch.clamp_min(cfg.render_depth_tol_rel * z_front, cfg.render_depth_tol_mm)
     thr = torch.where(q_front > 0, (zbuf - q_front).float() + q_scale / (z_front + tol), float("inf"))
-    acc = torch.zeros(5, Hp * Wp, device=dev)                  # sum w, w q, w rgb
-    colors = take(store.color, slots).T.contiguous()           # (3, V)
+    nacc = 5 if colour else 2
+    acc = torch.zeros(nacc, Hp * Wp, device=dev)               # sum w, w q, w rgb
+    colors = take(store.color, slots).T.contiguous() if colour else None   # (3, V)
     for b in buckets:
         sel, (_, _, _, stb, cq), _, _, _ = b
-        cs = colors if sel is None else colors.index_select(1, sel)
+        cs = colors if (sel is None or not colour) else colors.index_select(1, sel)
         for s0, s1 in chunks(b):
             t, qf, inside, pix = entries(b, s0, s1)
             pix = pix.view(-1)
@@ -465,10 +470,10 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig) -> M
             w = _int_pow_(t.mul_(front).mul_(cq[:, s0:s1]), k_pow)   # (k2, S)
             acc[0].scatter_add_(0, pix, w.view(-1))
             acc[1].scatter_add_(0, pix, (w * qf).view(-1))
-            for c in range(3):
+            for c in range(3 if colour else 0):
                 acc[2 + c].scatter_add_(0, pix, (w * cs[c:c + 1, s0:s1]).view(-1))
     buf = buf.view(Hp, Wp)[pad:pad + H, pad:pad + W].reshape(-1)
-    acc = acc.view(5, Hp, Wp)[:, pad:pad + H, pad:pad + W].reshape(5, -1)
+    acc = acc.view(nacc, Hp, Wp)[:, pad:pad + H, pad:pad + W].reshape(nacc, -1)
     zbuf = buf >> 32
     valid = zbuf > 0
     vidx = buf & _ID_MASK
@@ -479,7 +484,10 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig) -> M
     wsum = wsum.clamp_min(1e-30)
     z_front = q_scale / (zbuf & _Q_MAX).clamp_min(1).float()
     depth = torch.where(blended, q_scale * wsum / acc[1].clamp_min(1e-30), torch.where(valid, z_front, 0.0))
-    color = torch.where(blended, acc[2:] / wsum, take(store.color, wslots).T * valid)
+    if colour:
+        color = torch.where(blended, acc[2:] / wsum, take(store.color, wslots).T * valid)
+    else:
+        color = torch.zeros(3, H * W, device=dev)
     vm = valid[:, None].float()
     normals = take(n, vidx) * vm
     confidence = take(conf, vidx) * valid
@@ -490,7 +498,7 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig) -> M
 
 
 def render(store: SurfelStore, cfg: MapConfig, K, T_wc, height: int, width: int,
-           stable_only: bool = False) -> tuple[ModelView, int]:
+           stable_only: bool = False, colour: bool = True) -> tuple[ModelView, int]:
     """Render the store from ``T_wc``; returns the view and the number of visible surfels."""
     cam = Camera.make(K, T_wc, height, width, store.device)
     if store.n == 0 or store.num_alive == 0:
@@ -502,4 +510,4 @@ def render(store: SurfelStore, cfg: MapConfig, K, T_wc, height: int, width: int,
         candidates = cached[2]
     vis = visible_set(store, cam, cfg.near_mm, cfg.far_mm, margin_px=float(cfg.splat_max_half),
                       stable_threshold=cfg.stable_confidence if stable_only else None, candidates=candidates)
-    return splat(store, vis, cam, cfg), len(vis)
+    return splat(store, vis, cam, cfg, colour), len(vis)

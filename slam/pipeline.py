@@ -120,14 +120,17 @@ class Pipeline:
             return last_view, None, "previous_frame"
         t0 = time.perf_counter()
         K = self.odometry.K
-        mv = self.map.render(K, torch.as_tensor(pose_rect, dtype=torch.float32), self.camera.height, self.camera.width)
+        # with the flow against the last frame the model's colour is never looked at
+        colour = self.config.tracking.flow_reference != "last_frame"
+        mv = self.map.render(K, torch.as_tensor(pose_rect, dtype=torch.float32), self.camera.height, self.camera.width,
+                             colour=colour)
         self._time("render", (time.perf_counter() - t0) * 1000.0)
         coverage = float(mv.valid.float().mean())
         if coverage < self.config.tracking.min_model_coverage:
             self.fallbacks += 1
             log.info("model view covers %.0f%% of the image: tracking against the previous frame", 100 * coverage)
             return last_view, None, "previous_frame"
-        ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=last_view)
+        ref = self.odometry.view_from_render(mv.color if colour else None, mv.depth, mv.valid, background=last_view)
         flow_ref = last_view if self.config.tracking.flow_reference in ("last_frame", "chained") else None
         return ref, flow_ref, "model"
 

@@ -400,3 +400,19 @@ def test_config_validation():
         MapConfig.from_dict({"no_such_key": 1})
     cfg = MapConfig.from_dict({"stable_confidence": "4", "unstable_window": 30})
     assert cfg.stable_confidence == 4.0 and cfg.unstable_window == 30
+
+
+def test_render_without_colour_gives_the_same_geometry():
+    K = intrinsics()
+    m = SurfelMap(MapConfig())
+    for i, T in enumerate(ring_poses(6)):
+        depth, color, _ = ray_cast(T, K)
+        m.fuse(depth, color, K, T, i)
+    T = pose([1.0, 0.5, 0.0])
+    full = m.render(K, T, H, W)
+    bare = m.render(K, T, H, W, colour=False)
+    assert full.valid.float().mean() > 0.5 and full.color.abs().sum() > 0
+    for a, b in [(full.depth, bare.depth), (full.valid, bare.valid), (full.index, bare.index),
+                 (full.confidence, bare.confidence)]:
+        assert torch.equal(a, b)
+    assert bare.color.shape == full.color.shape and not bare.color.any()

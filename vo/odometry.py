@@ -162,12 +162,15 @@ class StereoOdometry:
             timings["stereo"] = (time.perf_counter() - t0) * 1000.0
         return View(image=img_l, gray=gray_l, depth=depth, valid=valid, parallax=parallax)
 
-    def view_from_render(self, color: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor,
+    def view_from_render(self, color: torch.Tensor | None, depth: torch.Tensor, valid: torch.Tensor,
                          background: View | None = None) -> View:
         """A reference view from a rendered model view.
 
         Args:
-            color: ``(3, H, W)`` RGB in [0, 1]; depth: ``(H, W)`` mm; valid: ``(H, W)`` bool.
+            color: ``(3, H, W)`` RGB in [0, 1], or None: the image is the background's (the view is
+                then the model's geometry seen with the last real frame's pixels, which is all that
+                tracking with the flow against the last frame uses).
+            depth: ``(H, W)`` mm; valid: ``(H, W)`` bool.
             background: a real view at the same pose (the last frame) whose colour fills the
                 pixels the model does not cover, so that the flow has no artificial edge there
                 (those pixels get 2D residuals only: the reference depth comes from the model).
@@ -177,10 +180,16 @@ class StereoOdometry:
         covered = valid[None, None].to(self.device)
         valid = covered & (depth >= dcfg.min_depth_mm) & (depth <= dcfg.max_depth_mm)
         depth = torch.where(valid, depth, torch.zeros_like(depth))
-        image = color[None].to(self.device).float().clamp(0, 1)
-        if background is not None:
-            image = torch.where(covered, relight(image, background.image, covered), background.image)
-        return View(image=image, gray=to_gray_u8(image[0]), depth=depth, valid=valid,
+        if color is None:
+            if background is None:
+                raise ValueError("view_from_render: without colour a background view is needed")
+            image, gray = background.image, background.gray
+        else:
+            image = color[None].to(self.device).float().clamp(0, 1)
+            if background is not None:
+                image = torch.where(covered, relight(image, background.image, covered), background.image)
+            gray = to_gray_u8(image[0])
+        return View(image=image, gray=gray, depth=depth, valid=valid,
                     parallax=parallax_from_depth(depth, self.camera.depth_from_disparity_scale()))
 
     # ---------------------------------------------------------------- tracking
