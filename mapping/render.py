@@ -290,7 +290,7 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     show where no stable surfel covers the pixel, as in ElasticFusion's model prediction.  Pass 2
     (blending) keeps, per pixel, the entries of the front's class (stable or not) within
     ``max(render_depth_tol_mm, render_depth_tol_rel * depth)`` behind the front depth - the surfels
-    of the visible surface - and averages their colour and plane depth with the weights
+    of the visible surface - and averages their colour (and with ``render_depth: blended`` their plane depth) with the weights
     ``min(conf / stable_confidence, 1) * t^k`` (a compact bell, ~ a Gaussian of sigma
     ``render_blend_sigma * R``, ``k = 1 / (2 render_blend_sigma^2)``: 4 by default), normalised per
     pixel (``scatter_add``).  A pixel thus takes its colour and depth from the surfels centred
@@ -459,7 +459,8 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     nacc = 5 if colour else 2
     acc = torch.zeros(nacc, Hp * Wp, device=dev)               # sum w, w q, w rgb
     colors = take(store.color, slots).T.contiguous() if colour else None   # (3, V)
-    for b in buckets:
+    blend_depth = cfg.render_depth == "blended"
+    for b in (buckets if (colour or blend_depth) else []):      # pass 2 only when something is blended
         sel, (_, _, _, stb, cq), _, _, _ = b
         cs = colors if (sel is None or not colour) else colors.index_select(1, sel)
         for s0, s1 in chunks(b):
@@ -483,7 +484,9 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     blended = wsum > 1e-30
     wsum = wsum.clamp_min(1e-30)
     z_front = q_scale / (zbuf & _Q_MAX).clamp_min(1).float()
-    depth = torch.where(blended, q_scale * wsum / acc[1].clamp_min(1e-30), torch.where(valid, z_front, 0.0))
+    depth = torch.where(valid, z_front, 0.0)
+    if blend_depth:
+        depth = torch.where(blended, q_scale * wsum / acc[1].clamp_min(1e-30), depth)
     if colour:
         color = torch.where(blended, acc[2:] / wsum, take(store.color, wslots).T * valid)
     else:

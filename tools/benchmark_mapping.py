@@ -4,7 +4,9 @@
 For each resolution a map is built by fusing a raster scan of a large synthetic tissue-like
 height field (exact depth by ray casting, analytic texture) until it holds ``--surfels`` surfels;
 then ``--frames`` further frames revisiting the mapped area are fused and rendered, timing every
-stage.  Prints a table of median milliseconds per stage.
+stage.  Prints a table of median milliseconds per stage.  ``render`` is the model view frame2model
+tracking renders by default (depth, normals, confidence: the flow goes against the last frame);
+``render_rgb`` also blends the colour (``tracking.flow_reference: rendered`` or ``chained``).
 
     .venv/bin/python tools/benchmark_mapping.py                      # 320x256 and 640x512, 2 threads
     .venv/bin/python tools/benchmark_mapping.py --sizes 320x256 --threads 1 --surfels 300000
@@ -115,14 +117,19 @@ def bench(H: int, W: int, target: int, n_frames: int, device: str, cfg: MapConfi
         stats = m.fuse(d, c, K, T, frame + i)
         fuse_t = dict(m.last_timings)
         t1 = time.perf_counter()
-        view = m.render(K, T, H, W)
+        view = m.render(K, T, H, W, colour=False)
         if device.startswith("cuda"):
             torch.cuda.synchronize()
         t2 = time.perf_counter()
         c2 = time.process_time()
+        m.render(K, T, H, W, colour=True)
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+        t3 = time.perf_counter()
         if i >= 3:     # warm-up frames excluded
             row = {k: fuse_t.get(k, 0.0) for k in STAGES}
             row.update(fuse=(t1 - t0) * 1e3, render=(t2 - t1) * 1e3, total=(t2 - t0) * 1e3,
+                       render_rgb=(t3 - t2) * 1e3, total_rgb=(t1 - t0 + t3 - t2) * 1e3,
                        cpu=(c2 - c0) * 1e3,
                        visible=stats["visible"], rendered=m.last_timings.get("render_visible", 0.0),
                        coverage=view.coverage(), matched=stats["matched"], added=stats["added"])
@@ -150,8 +157,10 @@ def main(argv=None) -> int:
 
     print(f"\nsurfel map benchmark: device={args.device}, torch threads={args.threads}, "
           f"median over {args.frames} frames (ms; stages are the parts of 'fuse', 'total' = fuse + "
-          f"render wall time, 'cpu' = process CPU time of fuse + render, all threads)")
-    cols = ["size", "surfels", "visible"] + STAGES + ["fuse", "render", "total", "cpu", "rendered", "coverage"]
+          f"render wall time, 'cpu' = process CPU time of fuse + render, all threads; '_rgb': rendering the "
+          f"colour too)")
+    cols = ["size", "surfels", "visible"] + STAGES + ["fuse", "render", "total", "render_rgb", "total_rgb", "cpu", "rendered",
+                                                "coverage"]
     hdr = " | ".join(f"{c:>10}" for c in cols)
     print(hdr)
     print("-" * len(hdr))
