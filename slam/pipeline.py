@@ -22,7 +22,7 @@ from slam.config import SlamConfig, save_config
 from slam.errors import DataError, SlamError
 from slam.prefetch import Prefetcher
 from slam.tum import TumStreamWriter
-from vo.odometry import StereoOdometry, TrackResult, View
+from vo.odometry import StereoOdometry, View
 
 log = logging.getLogger("slam")
 
@@ -102,6 +102,15 @@ class Pipeline:
             from mapping import SurfelMap
 
             self.map = SurfelMap(config.map, device=config.device)
+        tc = config.tracking
+        # frame2model reference: the flow goes against the last real frame (last_frame, chained)
+        # or the model's colour (rendered, chained), which only then is rendered
+        self.flow_against_last_frame = tc.flow_reference in ("last_frame", "chained")
+        self.render_colour = tc.flow_reference != "last_frame"
+        self.chain_gain = tc.chain_gain if tc.flow_reference == "chained" else 0.0
+        # the learned w3D weighs fusion where there is one (not with constant weights or 2D only)
+        self.learned_fusion_weight = (tc.fuse_weight == "w3d" and self.odometry.weight_networks is not None
+                                      and config.weights.residuals != "2d")
         self.timings: dict[str, list[float]] = {}
         self.fallbacks = 0
 
@@ -120,29 +129,27 @@ class Pipeline:
             return last_view, None, "previous_frame"
         t0 = time.perf_counter()
         K = self.odometry.K
-        # with the flow against the last frame the model's colour is never looked at
-        colour = self.config.tracking.flow_reference != "last_frame"
         mv = self.map.render(K, torch.as_tensor(pose_rect, dtype=torch.float32), self.camera.height, self.camera.width,
-                             colour=colour)
+                             colour=self.render_colour)
         self._time("render", (time.perf_counter() - t0) * 1000.0)
         coverage = float(mv.valid.float().mean())
         if coverage < self.config.tracking.min_model_coverage:
             self.fallbacks += 1
             log.info("model view covers %.0f%% of the image: tracking against the previous frame", 100 * coverage)
             return last_view, None, "previous_frame"
-        ref = self.odometry.view_from_render(mv.color if colour else None, mv.depth, mv.valid, background=last_view)
-        flow_ref = last_view if self.config.tracking.flow_reference in ("last_frame", "chained") else None
-        return ref, flow_ref, "model"
+        ref = self.odometry.view_from_render(mv.color if self.render_colour else None, mv.depth, mv.valid,
+                                             background=last_view)
+        return ref, (last_view if self.flow_against_last_frame else None), "model"
 
-    def _fuse(self, view: View, result: Optional[TrackResult], pose_rect: np.ndarray, index: int) -> None:
+    def _fuse(self, view: View, w3d: Optional[torch.Tensor], pose_rect: np.ndarray, index: int) -> None:
+        """Fuse ``view`` at ``pose_rect``, weighted by its ``(1, 1, H, W)`` learned ``w3d`` if given."""
         if self.map is None:
             return
         t0 = time.perf_counter()
         valid = view.valid[0, 0]
         weight = None
-        if (result is not None and self.config.tracking.fuse_weight == "w3d"
-                and self.odometry.weight_networks is not None and self.config.weights.residuals != "2d"):
-            weight = normalised_fusion_weight(result.w3d[0, 0], valid & (result.w3d[0, 0] > 0))
+        if w3d is not None and self.learned_fusion_weight:
+            weight = normalised_fusion_weight(w3d[0, 0], valid & (w3d[0, 0] > 0))
         self.map.fuse(view.depth[0, 0], view.image[0], self.odometry.K, torch.as_tensor(pose_rect, dtype=torch.float32),
                       frame_index=index, weight=weight, valid=valid)
         self._time("fusion", (time.perf_counter() - t0) * 1000.0)
@@ -211,9 +218,8 @@ class Pipeline:
         if self.gt_poses_only:
             pose_rect = frame.gt_pose @ self.R1.T
             rec = FrameRecord(index, stamp, frame.gt_pose, False, reference="groundtruth")
-            track = self._weights_only(view, last_view)
-            self._fuse(view, track, pose_rect, index)
-            self._log(k, frame, view, track, pose_rect, rec)
+            self._fuse(view, self._fusion_weight_only(view, last_view), pose_rect, index)
+            self._log(k, frame, view, None, pose_rect, rec)
             return rec, pose_rect, view
         if last_view is None:
             rec = FrameRecord(index, stamp, pose_rect @ self.R1, False, reference="first")
@@ -221,8 +227,7 @@ class Pipeline:
             self._log(k, frame, view, None, pose_rect, rec)
             return rec, pose_rect, view
         ref, flow_ref, kind = self._reference(last_view, pose_rect)
-        chained = kind == "model" and self.config.tracking.flow_reference == "chained"
-        track = self.odometry.track(view, ref, flow_ref, chain_gain=self.config.tracking.chain_gain if chained else 0.0)
+        track = self.odometry.track(view, ref, flow_ref, chain_gain=self.chain_gain if kind == "model" else 0.0)
         for stage, ms in track.timings_ms.items():
             self._time(stage, ms)
         if track.failed:
@@ -231,24 +236,24 @@ class Pipeline:
             return rec, pose_rect, last_view
         new_pose = pose_rect @ track.relative
         rec = FrameRecord(index, stamp, new_pose @ self.R1, False, "", kind, track.iterations, track.cost)
-        self._fuse(view, track, new_pose, index)
+        self._fuse(view, track.w3d, new_pose, index)
         self._log(k, frame, view, track, new_pose, rec)
         return rec, new_pose, view
 
-    def _weights_only(self, view: View, last_view: Optional[View]) -> Optional[TrackResult]:
-        """With known poses, track against the previous frame only for its weight maps.
+    def _fusion_weight_only(self, view: View, last_view: Optional[View]) -> Optional[torch.Tensor]:
+        """With known poses, the learned ``(1, 1, H, W)`` w3D of ``view`` against the previous frame.
 
         The learned w3D is what keeps badly matched depth, moving tissue and instruments out of the
-        map, so a map fused with ground-truth poses still wants it; the estimated pose is dropped.
-        Returns None where there is nothing to gain (constant weights, first frame, failure).
+        map, so a map fused with ground-truth poses still wants it; no pose is solved for.
+        Returns None where there is none (constant weights, 2D only, first frame).
         """
-        if (last_view is None or self.odometry.weight_networks is None
-                or self.config.tracking.fuse_weight != "w3d" or self.config.weights.residuals == "2d"):
+        if last_view is None or not self.learned_fusion_weight:
             return None
-        track = self.odometry.track(view, last_view, last_view)
-        for stage, ms in track.timings_ms.items():
+        timings: dict = {}
+        _, w3d = self.odometry.weight_maps(view, last_view, timings)
+        for stage, ms in timings.items():
             self._time(stage, ms)
-        return None if track.failed else track
+        return w3d
 
     def _log(self, k, frame, view, track, pose_rect, record) -> None:
         if self.logger is not None:

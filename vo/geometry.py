@@ -72,6 +72,14 @@ def sample_by_flow(image: torch.Tensor, flow: torch.Tensor, mode: str = "bilinea
     return F.grid_sample(image, grid, mode=mode, padding_mode="zeros", align_corners=True)
 
 
+def lands_inside(flow: torch.Tensor) -> torch.Tensor:
+    """``(B, 1, H, W)`` bool: where ``x + flow(x)`` lies inside the ``H x W`` image (pixel centres)."""
+    _, _, H, W = flow.shape
+    target = pixel_grid(H, W, flow.device, flow.dtype) + flow
+    return ((target[:, 0:1] >= 0) & (target[:, 0:1] <= W - 1)
+            & (target[:, 1:2] >= 0) & (target[:, 1:2] <= H - 1))
+
+
 def sample_valid_by_flow(valid: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     """Where bilinear sampling by ``flow`` draws only on valid pixels inside the image.
 

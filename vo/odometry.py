@@ -18,7 +18,7 @@ from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsCo
 from vo.correspondence import make_flow_estimators
 from vo.correspondence.dis import DisFlow, to_gray_u8
 from vo.depth import depth_from_parallax, flow_consistency, parallax_from_depth, vertical_parallax_ok
-from vo.geometry import backproject, pixel_grid, sample_by_flow, sample_valid_by_flow
+from vo.geometry import backproject, lands_inside, pixel_grid, sample_by_flow, sample_valid_by_flow
 from vo.lie import rotation_angle_deg
 from vo.residuals import PoseProblem
 from vo.solver import solve_pose
@@ -212,8 +212,7 @@ class StereoOdometry:
         _, _, H, W = flow.shape
         dmax = self.config.depth.max_depth_mm
         target = pixel_grid(H, W, flow.device, flow.dtype) + flow
-        inside = (target[:, 0:1] >= 0) & (target[:, 0:1] <= W - 1) & (target[:, 1:2] >= 0) & (target[:, 1:2] <= H - 1)
-        valid = cur.valid & inside
+        valid = cur.valid & lands_inside(flow)
         if flow_valid is not None:
             valid &= flow_valid
         valid3 = valid & sample_valid_by_flow(ref.valid, flow)
@@ -240,21 +239,8 @@ class StereoOdometry:
                 render's flow noise (a complementary filter). 0: no chain.
         """
         timings: dict = {}
-        chain = chain_gain > 0 and flow_ref is not None and flow_ref is not ref
-        flow_ref = flow_ref or ref
         t0 = time.perf_counter()
-        flow = self._flow(self.temporal_flow, cur.image, cur.gray, flow_ref.image, flow_ref.gray)
-        fb_ok = None
-        if self.config.correspondence.fb_check_px > 0:
-            back = self._flow(self.temporal_flow, flow_ref.image, flow_ref.gray, cur.image, cur.gray)
-            fb_ok = flow_consistency(flow, back, self.config.correspondence.fb_check_px)
-        if chain:
-            to_ref = self._flow(self.temporal_flow, flow_ref.image, flow_ref.gray, ref.image, ref.gray)
-            # a pose offset moves a smooth surface smoothly: keep the field's low frequencies only
-            # (the render's blur and shading make the per-pixel flow noisy)
-            to_ref = masked_blur(to_ref, ref.valid & flow_ref.valid, 0.05) * chain_gain
-            flow, on_ref = chain_flows(flow, to_ref, ref.valid)
-            fb_ok = on_ref if fb_ok is None else fb_ok & on_ref
+        flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
         t1 = time.perf_counter()
         target, valid, valid3, points_ref = self.build_problem(cur, ref, flow, fb_ok)
         w2d, w3d = self._weights(cur, ref, flow, valid)
@@ -304,6 +290,38 @@ class StereoOdometry:
                            cost=float("nan") if result is None else float(result.cost[0]),
                            valid_pixels=n_valid, flow=flow, w2d=w2d, w3d=w3d, timings_ms=timings)
 
+    def _correspondences(self, cur: View, ref: View, flow_ref: View | None,
+                         chain_gain: float) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The temporal flow ``cur -> ref`` (through ``flow_ref``, see :meth:`track`) and the
+        ``(1, 1, H, W)`` bool mask of flows that passed the checks (None: no check ran)."""
+        chain = chain_gain > 0 and flow_ref is not None and flow_ref is not ref
+        flow_ref = flow_ref or ref
+        flow = self._flow(self.temporal_flow, cur.image, cur.gray, flow_ref.image, flow_ref.gray)
+        fb_ok = None
+        if self.config.correspondence.fb_check_px > 0:
+            back = self._flow(self.temporal_flow, flow_ref.image, flow_ref.gray, cur.image, cur.gray)
+            fb_ok = flow_consistency(flow, back, self.config.correspondence.fb_check_px)
+        if chain:
+            to_ref = self._flow(self.temporal_flow, flow_ref.image, flow_ref.gray, ref.image, ref.gray)
+            # a pose offset moves a smooth surface smoothly: keep the field's low frequencies only
+            # (the render's blur and shading make the per-pixel flow noisy)
+            to_ref = masked_blur(to_ref, ref.valid & flow_ref.valid, 0.05) * chain_gain
+            flow, on_ref = chain_flows(flow, to_ref, ref.valid)
+            fb_ok = on_ref if fb_ok is None else fb_ok & on_ref
+        return flow, fb_ok
+
+    def weight_maps(self, cur: View, ref: View, timings: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The ``(1, 1, H, W)`` weight maps ``(w2d, w3d)`` of ``cur`` against ``ref`` as :meth:`track`
+        computes them, without solving for the pose (mapping with known poses)."""
+        t0 = time.perf_counter()
+        flow, fb_ok = self._correspondences(cur, ref, None, 0.0)
+        t1 = time.perf_counter()
+        _, valid, valid3, _ = self.build_problem(cur, ref, flow, fb_ok)
+        w2d, w3d = self._weights(cur, ref, flow, valid)
+        if timings is not None:
+            timings.update(flow=(t1 - t0) * 1000.0, weights=(time.perf_counter() - t1) * 1000.0)
+        return w2d, w3d * valid3
+
     # ---------------------------------------------------------------- frame2frame
     def register(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None = None,
                  gt_depth: np.ndarray | None = None) -> TrackResult | None:
@@ -337,7 +355,8 @@ def relight(image: torch.Tensor, target: torch.Tensor, covered: torch.Tensor, si
     Args:
         image, target: ``(1, 3, H, W)`` RGB in [0, 1]; covered: ``(1, 1, H, W)`` bool.
     """
-    gain = (masked_blur(target, covered, sigma_frac) + 1e-3) / (masked_blur(image, covered, sigma_frac) + 1e-3)
+    both = masked_blur(torch.cat([target, image], 1), covered, sigma_frac)
+    gain = (both[:, :3] + 1e-3) / (both[:, 3:] + 1e-3)
     return (image * gain.clamp(0.25, 4.0)).clamp(0, 1)
 
 
@@ -367,7 +386,6 @@ def masked_blur(x: torch.Tensor, mask: torch.Tensor, sigma_frac: float) -> torch
     return out
 
 
-
 def chain_flows(a_to_b: torch.Tensor, b_to_c: torch.Tensor, c_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Compose two flows: ``x -> x + a_to_b(x) -> that + b_to_c(that)``.
 
@@ -380,8 +398,5 @@ def chain_flows(a_to_b: torch.Tensor, b_to_c: torch.Tensor, c_valid: torch.Tenso
         (``(B, 2, H, W)`` flow on a's grid into c, ``(B, 1, H, W)`` bool where the chain stays inside
         both images and lands on valid pixels of c).
     """
-    B, _, H, W = a_to_b.shape
-    mid = pixel_grid(H, W, a_to_b.device, a_to_b.dtype) + a_to_b
-    inside = (mid[:, 0:1] >= 0) & (mid[:, 0:1] <= W - 1) & (mid[:, 1:2] >= 0) & (mid[:, 1:2] <= H - 1)
     flow = a_to_b + sample_by_flow(b_to_c, a_to_b)
-    return flow, inside & sample_valid_by_flow(c_valid, flow)
+    return flow, lands_inside(a_to_b) & sample_valid_by_flow(c_valid, flow)
