@@ -1,0 +1,129 @@
+"""Frame2model against frame2frame on synthetic rigid and loop sequences (issue 5's check).
+
+    .venv/bin/python tools/benchmark_frame2model.py [--scenarios rigid loop] [--seeds 8001 8002 8003 8004]
+        [--frames rigid=150 loop=300] [--size 320x256] [--workers 2] [--out runs/benchmark_f2m]
+        [--methods frame2frame last_frame rendered chained] [--set KEY=VALUE ...]
+
+Each sequence is tracked frame to frame and frame to model with each way of getting the flow
+(``tracking.flow_reference``: against the last real frame, the rendered model colour, or the last
+frame chained on into the model view), all with the same weights. Prints, and writes as markdown
+and JSON, the ATE-RMSE of every run and the ratio frame2model / frame2frame per sequence (the
+target is at most 0.7), with the mean over sequences. Sequences run in parallel worker processes;
+``--set`` overrides apply to every run (e.g. ``correspondence.dis_refine_passes=1``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+METHODS = {
+    "frame2frame": ["tracking.mode=frame2frame"],
+    "last_frame": ["tracking.mode=frame2model", "tracking.flow_reference=last_frame"],
+    "rendered": ["tracking.mode=frame2model", "tracking.flow_reference=rendered"],
+    "chained": ["tracking.mode=frame2model", "tracking.flow_reference=chained"],
+}
+DEFAULT_FRAMES = {"rigid": 150, "loop": 300}
+
+
+def run_one(job: dict) -> dict:
+    import torch
+
+    torch.set_num_threads(1)
+    from slam.config import load_config
+    from slam.datasets import open_dataset
+    from slam.pipeline import Pipeline
+
+    cfg = load_config(None, [*METHODS[job["method"]], "logging.progress=false", *job["extra"]])
+    dataset = open_dataset(Path(job["data"]), cfg.data)
+    result = Pipeline(cfg, dataset, Path(job["out"])).run(progress=False)
+    m = result.metrics
+    return {**{k: job[k] for k in ("scenario", "seed", "method")}, "ate_rmse_mm": m["ate_rmse_mm"],
+            "rpe_trans_mm": m["rpe_trans_mm"], "fps": m["fps"], "failed": len(m["failed_frames"]),
+            "model_fallbacks": m.get("model_fallbacks", 0)}
+
+
+def parse_frames(items: list[str]) -> dict[str, int]:
+    frames = dict(DEFAULT_FRAMES)
+    for item in items:
+        key, _, value = item.partition("=")
+        if not value:
+            raise SystemExit(f"--frames wants SCENARIO=N, got '{item}'")
+        frames[key] = int(value)
+    return frames
+
+
+def format_table(results: list[dict], methods: list[str]) -> str:
+    """One row per sequence: ATE of each method and each frame2model method's ratio to frame2frame."""
+    model = [m for m in methods if m != "frame2frame"]
+    has_f2f = "frame2frame" in methods
+    head = ["sequence", *(f"{m} ATE mm" for m in methods)]
+    if has_f2f:
+        head += [f"{m} / f2f" for m in model]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    seqs = sorted({(r["scenario"], r["seed"]) for r in results})
+    ate = {(r["scenario"], r["seed"], r["method"]): r["ate_rmse_mm"] for r in results}
+    ratios: dict[str, list[float]] = {m: [] for m in model}
+    for s, seed in seqs:
+        cells = [f"{ate[(s, seed, m)]:.3f}" if (s, seed, m) in ate else "-" for m in methods]
+        if has_f2f:
+            for m in model:
+                if (s, seed, m) in ate and (s, seed, "frame2frame") in ate:
+                    r = ate[(s, seed, m)] / ate[(s, seed, "frame2frame")]
+                    ratios[m].append(r)
+                    cells.append(f"{r:.2f}")
+                else:
+                    cells.append("-")
+        lines.append(f"| {s} s{seed} | " + " | ".join(cells) + " |")
+    mean = [f"{np.mean([ate[k] for k in ate if k[2] == m]):.3f}" for m in methods]
+    if has_f2f:
+        mean += [f"{np.mean(ratios[m]):.2f} (max {np.max(ratios[m]):.2f})" if ratios[m] else "-" for m in model]
+    lines.append("| mean | " + " | ".join(mean) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenarios", nargs="+", default=["rigid", "loop"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[8001, 8002, 8003, 8004])
+    ap.add_argument("--frames", nargs="*", default=[], help="SCENARIO=N (defaults rigid=150 loop=300)")
+    ap.add_argument("--size", default="320x256")
+    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
+    ap.add_argument("--out", default="runs/benchmark_f2m")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    args = ap.parse_args()
+    args.scenarios, args.seeds, args.methods = (list(dict.fromkeys(v)) for v in (args.scenarios, args.seeds, args.methods))
+    frames = parse_frames(args.frames)
+    w, h = (int(v) for v in args.size.split("x"))
+    out = Path(args.out)
+    from slam.synth import generate
+
+    jobs = []
+    for scenario in args.scenarios:
+        n = frames.get(scenario, 150)
+        for seed in args.seeds:
+            data = out / "data" / f"{scenario}_s{seed}_{args.size}_{n}"
+            if not (data / "groundtruth.txt").is_file():
+                generate(data, scenario, frames=n, size=(w, h), seed=seed)
+            for method in args.methods:
+                jobs.append({"scenario": scenario, "seed": seed, "method": method, "data": str(data),
+                             "extra": args.set, "out": str(out / "runs" / f"{scenario}_s{seed}_{method}")})
+    with ProcessPoolExecutor(args.workers) as pool:
+        results = list(pool.map(run_one, jobs))
+    table = format_table(results, args.methods)
+    settings = f"size {args.size}, frames {frames}, overrides {args.set or 'none'}"
+    print(table)
+    print(settings)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "frame2model.md").write_text(table + "\n\n" + settings + "\n")
+    (out / "frame2model.json").write_text(json.dumps({"settings": {"size": args.size, "frames": frames,
+                                                                   "overrides": args.set}, "results": results}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
