@@ -59,6 +59,19 @@ def _R1_4x4(R1: np.ndarray) -> np.ndarray:
     return M
 
 
+def model_coverage(model_valid: torch.Tensor, frame_valid: torch.Tensor) -> float:
+    """The fraction of a frame's valid pixels ``(H, W)`` bool that the model view ``(H, W)`` bool
+    rendered at its pose covers (the whole image's fraction when the frame has none).
+
+    Measured on what the camera saw, not on the whole image: pixels without stereo depth (the
+    border the right view does not see) or masked out (instruments, highlights) are left out.
+    """
+    n = int(frame_valid.sum())
+    if n == 0:
+        return float(model_valid.float().mean())
+    return int((model_valid & frame_valid).sum()) / n
+
+
 def normalised_fusion_weight(w3d: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """Per-frame normalisation of the learned 3D weight for fusion (its scale is not fixed by the
     optimum): divided by its 95th percentile over valid pixels, clamped to [0, 1].
@@ -132,10 +145,11 @@ class Pipeline:
         mv = self.map.render(K, torch.as_tensor(pose_rect, dtype=torch.float32), self.camera.height, self.camera.width,
                              colour=self.render_colour)
         self._time("render", (time.perf_counter() - t0) * 1000.0)
-        coverage = float(mv.valid.float().mean())
+        coverage = model_coverage(mv.valid, last_view.valid[0, 0])
         if coverage < self.config.tracking.min_model_coverage:
             self.fallbacks += 1
-            log.info("model view covers %.0f%% of the image: tracking against the previous frame", 100 * coverage)
+            log.info("the model view covers %.0f%% of what the last frame saw: tracking against the previous frame",
+                     100 * coverage)
             return last_view, None, "previous_frame"
         ref = self.odometry.view_from_render(mv.color if self.render_colour else None, mv.depth, mv.valid,
                                              background=last_view)

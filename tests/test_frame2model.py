@@ -8,7 +8,24 @@ import pytest
 import torch
 
 from slam.cli import main
+from slam.pipeline import model_coverage
 from vo.odometry import chain_flows, masked_blur, relight
+
+
+def test_model_coverage_counts_what_the_frame_saw():
+    H, W = 20, 30
+    frame = torch.ones(H, W, dtype=torch.bool)
+    frame[:, :6] = False                      # no stereo depth on the left border
+    frame[5:10, 10:20] = False                # an instrument
+    model = torch.ones(H, W, dtype=torch.bool)
+    model[:, 24:] = False                     # new tissue on the right
+    seen = int(frame.sum())
+    assert model_coverage(model, frame) == pytest.approx((seen - int(frame[:, 24:].sum())) / seen)
+    # holes of the model behind the instrument or on the border do not count against it
+    model[5:10, 10:20] = False
+    model[:, :6] = False
+    assert model_coverage(model, frame) == pytest.approx((seen - int(frame[:, 24:].sum())) / seen)
+    assert model_coverage(model, torch.zeros(H, W, dtype=torch.bool)) == pytest.approx(float(model.float().mean()))
 
 
 def test_chain_flows_composes_displacements():
@@ -59,13 +76,16 @@ def test_frame2model_beats_frame2frame_on_rigid(synth_dir, tmp_path):
     data = synth_dir("rigid", 100, (320, 256), seed=8001)
     ate = {}
     for name, args in {"f2f": ["--mode", "frame2frame"],
-                       "f2m_last_frame": ["--mode", "frame2model"],
-                       "f2m_chained": ["--mode", "frame2model", "--set", "tracking.flow_reference=chained"]}.items():
+                       "f2m_rendered": ["--mode", "frame2model"],
+                       "f2m_last_frame": ["--mode", "frame2model", "--set", "tracking.flow_reference=last_frame"]}.items():
         out = tmp_path / name
         assert main(["run", str(data), *args, "--out", str(out), "--quiet"]) == 0
         m = json.loads((out / "metrics.json").read_text())
-        assert m["failed_frames"] == [] and m["model_fallbacks"] <= 1
+        assert m["failed_frames"] == []
+        if name != "f2f":   # mostly against the model: the previous frame only while new tissue comes in
+            assert m["model_fallbacks"] < 0.3 * 100, m["model_fallbacks"]
         ate[name] = m["ate_rmse_mm"]
-    # the model averages stereo noise and anchors the pose to all earlier frames
-    assert ate["f2m_last_frame"] < 0.85 * ate["f2f"], ate
-    assert ate["f2m_chained"] < 0.85 * ate["f2f"], ate
+    # the flow against the model's colour anchors the pose to all earlier frames (issue 5's
+    # target: at most 0.7x frame2frame); against the last frame only the depth is the model's
+    assert ate["f2m_rendered"] < 0.7 * ate["f2f"], ate
+    assert ate["f2m_last_frame"] < ate["f2f"], ate
