@@ -43,7 +43,7 @@ def run_one(job: dict) -> dict:
     result = Pipeline(cfg, dataset, Path(job["out"])).run(progress=False)
     m = result.metrics
     return {**{k: job[k] for k in ("scenario", "seed", "method")}, "ate_rmse_mm": m["ate_rmse_mm"],
-            "rpe_trans_mm": m["rpe_trans_mm"], "fps": m["fps"], "failed": len(m["failed_frames"]),
+            "rpe_trans_mm": m["rpe_trans_mm"], "fps": m["fps"], "frames": m["frames"], "failed": len(m["failed_frames"]),
             "model_fallbacks": m.get("model_fallbacks", 0)}
 
 
@@ -83,6 +83,14 @@ def format_table(results: list[dict], methods: list[str]) -> str:
     if has_f2f:
         mean += [f"{np.mean(ratios[m]):.2f} (max {np.max(ratios[m]):.2f})" if ratios[m] else "-" for m in model]
     lines.append("| mean | " + " | ".join(mean) + " |")
+    shares = []
+    for m in model:
+        rows = [r for r in results if r["method"] == m and r.get("frames")]
+        if rows:
+            share = sum(r["model_fallbacks"] for r in rows) / sum(r["frames"] for r in rows)
+            shares.append(f"{m} {100 * share:.0f} %")
+    if shares:
+        lines.append("\nframes tracked against the previous frame (model view too empty): " + ", ".join(shares))
     return "\n".join(lines)
 
 
