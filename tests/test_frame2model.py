@@ -77,15 +77,17 @@ def test_frame2model_beats_frame2frame_on_rigid(synth_dir, tmp_path):
     ate = {}
     for name, args in {"f2f": ["--mode", "frame2frame"],
                        "f2m_rendered": ["--mode", "frame2model"],
-                       "f2m_last_frame": ["--mode", "frame2model", "--set", "tracking.flow_reference=last_frame"]}.items():
+                       "f2m_last_frame": ["--mode", "frame2model", "--set", "tracking.flow_reference=last_frame"],
+                       "f2m_chained": ["--mode", "frame2model", "--set", "tracking.flow_reference=chained"]}.items():
         out = tmp_path / name
         assert main(["run", str(data), *args, "--out", str(out), "--quiet"]) == 0
         m = json.loads((out / "metrics.json").read_text())
         assert m["failed_frames"] == []
         if name != "f2f":   # mostly against the model: the previous frame only while new tissue comes in
-            assert m["model_fallbacks"] < 0.3 * 100, m["model_fallbacks"]
+            assert m["model_fallbacks"] < 0.3 * m["frames"], m["model_fallbacks"]
         ate[name] = m["ate_rmse_mm"]
     # the flow against the model's colour anchors the pose to all earlier frames (issue 5's
-    # target: at most 0.7x frame2frame); against the last frame only the depth is the model's
+    # target: at most 0.7x frame2frame); the other two variants keep their earlier bound
     assert ate["f2m_rendered"] < 0.7 * ate["f2f"], ate
-    assert ate["f2m_last_frame"] < ate["f2f"], ate
+    assert ate["f2m_last_frame"] < 0.85 * ate["f2f"], ate
+    assert ate["f2m_chained"] < 0.85 * ate["f2f"], ate
