@@ -177,6 +177,7 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
     cos_thr = math.cos(math.radians(cfg.assoc_normal_deg))
 
     # store maintenance first (it moves slots; the view cached at the end stays valid)
+    store.edits += 1                                # matched surfels are updated in place below
     store.scratch.pop("view", None)
     if not store.maybe_compact() and cfg.sort_cell_mm > 0:
         store.sort_aged(cfg.sort_cell_mm, min_chunks=max(16, (1 << 16) // store.chunk_size))

@@ -13,7 +13,8 @@ The index map used by the fusion is a super-sampled depth buffer z-tested with `
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Callable
 
 import torch
 
@@ -38,6 +39,7 @@ class ModelView:
         valid: ``(H, W)`` bool, True where a surfel covers the pixel.
         index: ``(H, W)`` int64 slot of the visible surfel, -1 where empty (valid until the
             map is next modified).
+        pending_colour: set when rendered without colour: computes it (see :meth:`with_colour`).
     """
 
     color: torch.Tensor
@@ -46,6 +48,15 @@ class ModelView:
     confidence: torch.Tensor
     valid: torch.Tensor
     index: torch.Tensor
+    pending_colour: Callable[[], torch.Tensor] | None = field(default=None, repr=False)
+
+    def with_colour(self) -> "ModelView":
+        """Fill ``color`` of a view rendered with ``colour=False`` (the blending pass, run only now:
+        a caller that may not use the colour skips it).  The map must not have changed since."""
+        if self.pending_colour is not None:
+            self.color = self.pending_colour()
+            self.pending_colour = None
+        return self
 
     def coverage(self) -> float:
         """Fraction of the pixels covered by the map."""
@@ -456,48 +467,67 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     z_front = q_scale / q_front.clamp_min(1).float()
     tol = torch.clamp_min(cfg.render_depth_tol_rel * z_front, cfg.render_depth_tol_mm)
     thr = torch.where(q_front > 0, (zbuf - q_front).float() + q_scale / (z_front + tol), float("inf"))
-    nacc = 5 if colour else 2
-    acc = torch.zeros(nacc, Hp * Wp, device=dev)               # sum w, w q, w rgb
-    colors = take(store.color, slots).T.contiguous() if colour else None   # (3, V)
     blend_depth = cfg.render_depth == "blended"
-    for b in (buckets if (colour or blend_depth) else []):      # pass 2 only when something is blended
-        sel, (_, _, _, stb, cq), _, _, _ = b
-        cs = colors if (sel is None or not colour) else colors.index_select(1, sel)
-        for s0, s1 in chunks(b):
-            t, qf, inside, pix = entries(b, s0, s1)
-            pix = pix.view(-1)
-            zv = (qf + stb[:, s0:s1]).mul_(inside)
-            front = zv.sub_(take(thr, pix).view(zv.shape)).sign_().clamp_min_(0.0)
-            w = _int_pow_(t.mul_(front).mul_(cq[:, s0:s1]), k_pow)   # (k2, S)
-            acc[0].scatter_add_(0, pix, w.view(-1))
-            acc[1].scatter_add_(0, pix, (w * qf).view(-1))
-            for c in range(3 if colour else 0):
-                acc[2 + c].scatter_add_(0, pix, (w * cs[c:c + 1, s0:s1]).view(-1))
-    buf = buf.view(Hp, Wp)[pad:pad + H, pad:pad + W].reshape(-1)
-    acc = acc.view(nacc, Hp, Wp)[:, pad:pad + H, pad:pad + W].reshape(nacc, -1)
+
+    def blend(with_colour: bool) -> torch.Tensor:
+        """Per padded pixel ``(C, Hp * Wp)`` sums of the blending weights ``w``, then ``w q`` (with
+        ``render_depth: blended``), then ``w rgb`` (with colour)."""
+        colors = take(store.color, slots).T.contiguous() if with_colour else None   # (3, V)
+        acc = torch.zeros(1 + blend_depth + (3 if with_colour else 0), Hp * Wp, device=dev)
+        for b in buckets:
+            sel, (_, _, _, stb, cq), _, _, _ = b
+            cs = None if colors is None else (colors if sel is None else colors.index_select(1, sel))
+            for s0, s1 in chunks(b):
+                t, qf, inside, pix = entries(b, s0, s1)
+                pix = pix.view(-1)
+                zv = (qf + stb[:, s0:s1]).mul_(inside)
+                front = zv.sub_(take(thr, pix).view(zv.shape)).sign_().clamp_min_(0.0)
+                w = _int_pow_(t.mul_(front).mul_(cq[:, s0:s1]), k_pow)   # (k2, S)
+                acc[0].scatter_add_(0, pix, w.view(-1))
+                if blend_depth:
+                    acc[1].scatter_add_(0, pix, (w * qf).view(-1))
+                for c in range(3 if cs is not None else 0):
+                    acc[1 + blend_depth + c].scatter_add_(0, pix, (w * cs[c:c + 1, s0:s1]).view(-1))
+        return acc
+
+    def crop(x: torch.Tensor) -> torch.Tensor:
+        """``(C, Hp * Wp)`` padded buffer -> ``(C, H * W)``."""
+        return x.view(x.shape[0], Hp, Wp)[:, pad:pad + H, pad:pad + W].reshape(x.shape[0], -1)
+
+    buf = crop(buf[None])[0]
     zbuf = buf >> 32
     valid = zbuf > 0
     vidx = buf & _ID_MASK
     wslots = take(slots, vidx)
-    # pixels whose weights all underflowed (only possible at a footprint's rim) keep the front surfel
-    wsum = acc[0]
-    blended = wsum > 1e-30
-    wsum = wsum.clamp_min(1e-30)
     z_front = q_scale / (zbuf & _Q_MAX).clamp_min(1).float()
     depth = torch.where(valid, z_front, 0.0)
+    acc = crop(blend(colour)) if (colour or blend_depth) else None
     if blend_depth:
-        depth = torch.where(blended, q_scale * wsum / acc[1].clamp_min(1e-30), depth)
-    if colour:
-        color = torch.where(blended, acc[2:] / wsum, take(store.color, wslots).T * valid)
-    else:
-        color = torch.zeros(3, H * W, device=dev)
+        # pixels whose weights all underflowed (only possible at a footprint's rim) keep the front
+        depth = torch.where(acc[0] > 1e-30, q_scale * acc[0] / acc[1].clamp_min(1e-30), depth)
+    edits = store.edits
+
+    def colour_of(acc: torch.Tensor | None) -> torch.Tensor:
+        if acc is None:
+            if store.edits != edits:
+                raise RuntimeError("the surfel map changed since this view was rendered: render it again")
+            acc = crop(blend(True))
+        wsum = acc[0]
+        return torch.where(wsum > 1e-30, acc[-3:] / wsum.clamp_min(1e-30),
+                           take(store.color, wslots).T * valid).reshape(3, H, W)
+
     vm = valid[:, None].float()
     normals = take(n, vidx) * vm
     confidence = take(conf, vidx) * valid
     index = torch.where(valid, wslots, -1)
-    return ModelView(color=color.reshape(3, H, W), depth=depth.reshape(H, W),
+    view = ModelView(color=torch.zeros(3, H, W, device=dev), depth=depth.reshape(H, W),
                      normals=normals.T.reshape(3, H, W), confidence=confidence.reshape(H, W),
                      valid=valid.reshape(H, W), index=index.reshape(H, W))
+    if colour:
+        view.color = colour_of(acc)
+    else:   # the blending pass on demand (ModelView.with_colour)
+        view.pending_colour = lambda: colour_of(None)
+    return view
 
 
 def render(store: SurfelStore, cfg: MapConfig, K, T_wc, height: int, width: int,

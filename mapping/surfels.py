@@ -60,6 +60,7 @@ class SurfelStore:
         self.sorted_upto = 0  # slots [0, sorted_upto) were re-ordered spatially (see sort_aged)
         self.scratch: dict = {}   # persistent work buffers (index map, last fused view)
         self.version = 0      # bumped whenever slots move (compaction, re-ordering)
+        self.edits = 0        # bumped by every change of contents (see ModelView.with_colour)
         self._alloc(max(int(capacity), self.chunk_size))
 
     # ------------------------------------------------------------------ storage
@@ -111,6 +112,7 @@ class SurfelStore:
         if m == 0:
             return torch.zeros(0, dtype=torch.long, device=self.device)
         self.reserve(m)
+        self.edits += 1
         s, e = self.n, self.n + m
         self.pos[s:e] = pos
         self.normal[s:e] = normal
@@ -132,6 +134,7 @@ class SurfelStore:
         slots = take(slots, take(self.alive, slots).nonzero().squeeze(1)).unique()
         k = int(slots.numel())
         if k:
+            self.edits += 1
             self.alive.index_fill_(0, slots, False)
             self.conf.index_fill_(0, slots, 0.0)
             self.num_dead += k
@@ -161,6 +164,7 @@ class SurfelStore:
     def compact(self) -> None:
         """Remove all dead slots now, keeping creation order; rebuilds the chunk boxes."""
         self.version += 1
+        self.edits += 1
         n = self.n
         alive = self.alive[:n]
         keep = alive.nonzero().squeeze(1)
@@ -194,6 +198,7 @@ class SurfelStore:
         if end - start < min_chunks * cs:
             return False
         self.version += 1
+        self.edits += 1
         seg = torch.arange(start, end, device=self.device)
         p = self.pos[start:end]
         q = torch.floor((p - p.amin(0)) / cell_mm).long().clamp(0, (1 << 21) - 1)

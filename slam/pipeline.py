@@ -142,15 +142,19 @@ class Pipeline:
             return last_view, None, "previous_frame"
         t0 = time.perf_counter()
         K = self.odometry.K
+        # depth first: the colour's blending pass is only run when the view is used
         mv = self.map.render(K, torch.as_tensor(pose_rect, dtype=torch.float32), self.camera.height, self.camera.width,
-                             colour=self.render_colour)
-        self._time("render", (time.perf_counter() - t0) * 1000.0)
+                             colour=False)
         coverage = model_coverage(mv.valid, last_view.valid[0, 0])
         if coverage < self.config.tracking.min_model_coverage:
+            self._time("render", (time.perf_counter() - t0) * 1000.0)
             self.fallbacks += 1
             log.info("the model view covers %.0f%% of what the last frame saw: tracking against the previous frame",
                      100 * coverage)
             return last_view, None, "previous_frame"
+        if self.render_colour:
+            mv.with_colour()
+        self._time("render", (time.perf_counter() - t0) * 1000.0)
         ref = self.odometry.view_from_render(mv.color if self.render_colour else None, mv.depth, mv.valid,
                                              background=last_view)
         return ref, (last_view if self.flow_against_last_frame else None), "model"

@@ -416,3 +416,10 @@ def test_render_without_colour_gives_the_same_geometry():
                  (full.confidence, bare.confidence)]:
         assert torch.equal(a, b)
     assert bare.color.shape == full.color.shape and not bare.color.any()
+    # the blending pass on demand gives the colour of the full render; not once the map changed
+    assert torch.equal(bare.with_colour().color, full.color) and bare.pending_colour is None
+    late = m.render(K, T, H, W, colour=False)
+    depth, color, _ = ray_cast(T, K)
+    m.fuse(depth, color, K, T, 6)
+    with pytest.raises(RuntimeError, match="changed"):
+        late.with_colour()
