@@ -39,13 +39,15 @@ class TrackingConfig:
         chain_gain: the fraction of the last frame's measured offset from the map removed per
             frame with ``flow_reference: chained`` (below 1: the render's flow noise is damped).
         min_model_coverage: below this fraction of the last frame's valid pixels covered by the
-            model view, the previous frame is the reference for that step. A partly covered
-            view is filled with the last frame's pixels, which sit at the true last pose while the
-            render sits at the estimated one: the seam between them pulls the flow (0.95: on
-            synthetic rigid and loop sequences, ATE 0.25 mm against 0.28 with 0.9 and 0.36
-            with 0.5; ``tools/benchmark_frame2model.py``).
-        fuse_weight: per-pixel fusion weight: ``w3d`` (learned 3D weight, normalised per frame,
-            when available) or ``uniform``.
+            model view, the previous frame is the reference for that step (the start, fast
+            motion). A partly covered view is filled with the last frame's pixels, which sit at
+            the true last pose while the render sits at the estimated one: the seam between them
+            pulls the flow, so the bar is high.
+        fuse_weight: per-pixel fusion weight: ``w3d`` (the learned 3D weight over its per-frame
+            median, clamped to 1; pixels the tracker could not weigh count fully, see
+            ``slam.pipeline.normalised_fusion_weight``; uniform without learned weights) or
+            ``uniform`` (every valid pixel counts fully: better on rigid scenes, worse where tissue
+            deforms; README, frame2model section).
         export_map: fuse a map in frame2frame too (without tracking against it) and export it.
         poses: ``estimated`` (track) or ``groundtruth``: take the dataset's ground-truth poses
             and fuse the map with them (mapping on its own, e.g. to measure the map's accuracy

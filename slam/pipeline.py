@@ -73,17 +73,27 @@ def model_coverage(model_valid: torch.Tensor, frame_valid: torch.Tensor) -> floa
 
 
 def normalised_fusion_weight(w3d: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """Per-frame normalisation of the learned 3D weight for fusion (its scale is not fixed by the
-    optimum): divided by its 95th percentile over valid pixels, clamped to [0, 1].
+    """The per-pixel fusion weight of a frame from its learned 3D weight.
+
+    Where the tracker weighed the pixel (``w3d > 0``): ``w3d`` divided by its median over those
+    pixels, clamped to [0, 1]. The optimum does not fix the weights' scale, so a typical pixel
+    counts as one observation (the map's confidence keeps ElasticFusion's meaning and a surface
+    becomes stable after a few frames) and a pixel the network trusts k times less than typical
+    counts 1/k. Valid pixels the tracker could not weigh (no reference depth there: tissue coming
+    into view, outside the model view) count fully: leaving them out would keep new tissue out of
+    the map until the tracker next falls back to the previous frame.
+    Invalid pixels (no stereo depth, instruments, highlights) are 0.
 
     Args:
-        w3d: ``(H, W)``; valid: ``(H, W)`` bool.
+        w3d: ``(H, W)`` learned 3D weight, 0 where the tracker did not weigh the pixel;
+        valid: ``(H, W)`` bool valid pixels of the frame.
     """
-    vals = w3d[valid]
+    weighed = valid & (w3d > 0)
+    vals = w3d[weighed]
     if vals.numel() == 0:
-        return torch.zeros_like(w3d)
-    ref = torch.quantile(vals.float()[:: max(1, vals.numel() // 20000)], 0.95).clamp(min=1e-12)
-    return (w3d / ref).clamp(0, 1) * valid
+        return valid.to(w3d.dtype)
+    ref = torch.quantile(vals.float()[:: max(1, vals.numel() // 20000)], 0.5).clamp(min=1e-12)
+    return torch.where(weighed, (w3d / ref).clamp(0, 1), valid.to(w3d.dtype))
 
 
 class Pipeline:
@@ -167,7 +177,7 @@ class Pipeline:
         valid = view.valid[0, 0]
         weight = None
         if w3d is not None and self.learned_fusion_weight:
-            weight = normalised_fusion_weight(w3d[0, 0], valid & (w3d[0, 0] > 0))
+            weight = normalised_fusion_weight(w3d[0, 0], valid)
         self.map.fuse(view.depth[0, 0], view.image[0], self.odometry.K, torch.as_tensor(pose_rect, dtype=torch.float32),
                       frame_index=index, weight=weight, valid=valid)
         self._time("fusion", (time.perf_counter() - t0) * 1000.0)
