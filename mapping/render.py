@@ -278,9 +278,10 @@ def _int_pow_(x: torch.Tensor, k: int) -> torch.Tensor:
 def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colour: bool = True) -> ModelView:
     """Two-pass surface splatting of the visible surfels into a ``(H, W)`` view.
 
-    ``colour=False`` skips the colour (``ModelView.color`` is all zero): tracking that takes its
-    image from the last real frame needs only the model's depth, and colour is 3 of the 5 blended
-    channels.
+    ``colour=False`` skips the colour (``ModelView.color`` is all zero until
+    ``ModelView.with_colour()`` runs the blending pass): tracking that takes its image from the
+    last real frame needs only the model's depth, and a caller that may not use the view (a
+    coverage check first) pays for the blending only when it does.
 
     Every surfel is expanded into the ``(2h + 1)^2`` pixel offsets ``(ox, oy)`` around its centre
     pixel (``h`` from its footprint radius, surfels grouped by ``h``).  For an offset, the inverse
