@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import torch
 
+from . import kernels
 from .config import MapConfig
 from .render import KEY_EMPTY, Camera, cell_winners, visible_set
 from .surfels import SurfelStore, take
@@ -101,8 +102,17 @@ def measure(depth: torch.Tensor, color: torch.Tensor, cam: Camera, cfg: MapConfi
         win = torch.as_tensor(weight, dtype=torch.float32, device=dev)
         w = w * torch.nan_to_num(win, nan=0.0).clamp(0.0, 1.0)
     ok &= w > cfg.min_fuse_weight
-    z = torch.where(ok, depth, 0.0)
     rx, ry = _rays(H, W, cam.fx, cam.fy, cam.cx, cam.cy, str(dev))
+    if kernels.use_compiled(cfg, dev):
+        HW = H * W
+        out = dict(points=torch.empty(HW, 3), normals=torch.empty(HW, 3), radius=torch.empty(HW),
+                   weight=torch.empty(HW), fuse=torch.empty(HW, dtype=torch.bool), free_depth=torch.empty(HW))
+        kernels.measure(depth.contiguous().numpy(), ok.contiguous().numpy(), w.contiguous().numpy(),
+                        rx.reshape(-1).numpy(), ry.reshape(-1).numpy(), cam.fx, cam.fy,
+                        float(cfg.normal_max_jump_rel), float(cfg.radius_min_cos),
+                        cfg.radius_scale * math.sqrt(2.0) / cam.f, *(x.numpy() for x in out.values()))
+        return Measurement(color=color.reshape(3, HW).T.contiguous(), **out)
+    z = torch.where(ok, depth, 0.0)
 
     nx = torch.zeros(H, W, device=dev)
     ny = torch.zeros(H, W, device=dev)
@@ -195,7 +205,16 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
     merged = 0
     n_visible = 0
     touched = None
-    if len(vis):
+    compiled = kernels.use_compiled(cfg, dev)
+    if len(vis) and compiled:
+        matched_pix, free_kill, merge_kill, touched, decayed, n_visible = _associate_compiled(
+            store, cfg, cam, meas, vis, frame)
+        removed += store.kill(free_kill)
+        merged = store.kill(merge_kill)
+        removed += merged
+        n_matched = int(touched.numel())
+        timer.lap("associate")
+    elif len(vis):
         # pixel of every visible surfel (its centre lies inside the image) and its index-map cell
         fu = vis.u + 0.5
         fv = vis.v + 0.5
@@ -305,7 +324,7 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
 
     # ---- unstable surfels reaching the end of their time window ---------------------------------------
     removed += age_out(store, cfg, frame)
-    if touched is not None and touched.numel():
+    if touched is not None and touched.numel() and not compiled:     # (the kernel grew them)
         store.grow_boxes(touched)
     # a render of this very view (the usual next call) starts from these slots
     cand = vis.slots if new_slots is None else torch.cat([vis.slots, new_slots])
@@ -313,6 +332,29 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
     timer.lap("clean")
     return {"matched": n_matched, "added": n_added, "removed": removed, "merged": merged,
             "decayed": decayed, "visible": n_visible, "surfels": store.num_alive}
+
+
+def _associate_compiled(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measurement, vis,
+                        frame: int):
+    """Free-space test, index map, association, merging and update by the compiled kernel
+    (:func:`mapping.kernels.associate_and_update`, CPU); returns torch tensors
+    ``(matched_pix, free_kill, merge_kill, touched)`` and the counts ``decayed, n_visible``."""
+    H, W = cam.height, cam.width
+    np_ = lambda x: x.contiguous().numpy()           # noqa: E731 - views of CPU tensors
+    out = kernels.associate_and_update(
+        np_(vis.slots), np_(vis.p), np_(vis.u), np_(vis.v),
+        np_(meas.points), np_(meas.normals), np_(meas.radius), np_(meas.weight), np_(meas.color),
+        np_(meas.fuse), np_(meas.free_depth),
+        store.pos.numpy(), store.normal.numpy(), store.radius.numpy(), store.color.numpy(),
+        store.conf.numpy(), store.t_last.numpy(), store.box_lo.numpy(), store.box_hi.numpy(), store.chunk_size,
+        np_(cam.R_cw), np_(cam.R_wc), np_(cam.t_wc), H, W, int(cfg.index_scale),
+        float(cfg.free_space_rel), float(cfg.free_space_mm), float(cfg.assoc_depth_rel),
+        float(cfg.assoc_depth_mm), math.cos(math.radians(cfg.assoc_normal_deg)),
+        float(cfg.assoc_conf_tie_rel), float(cfg.merge_radius_factor), float(cfg.stable_confidence),
+        float(cfg.free_space_decay), float(cfg.radius_update_ratio), float(cfg.max_confidence), int(frame))
+    matched_pix, free_kill, merge_kill, touched, decayed, n_visible = out
+    return (torch.from_numpy(matched_pix), torch.from_numpy(free_kill), torch.from_numpy(merge_kill),
+            torch.from_numpy(touched), int(decayed), int(n_visible))
 
 
 def merge_redundant(store: SurfelStore, cfg: MapConfig, pix: torch.Tensor, ps: torch.Tensor,

@@ -146,16 +146,18 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=20, help="timed frames (median reported)")
     ap.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--kernels", default="auto", choices=["auto", "compiled", "torch"],
+                    help="MapConfig.kernels: compiled (numba, CPU) or torch code")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
-    cfg = MapConfig()
+    cfg = MapConfig(kernels=args.kernels)
     results = []
     for size in args.sizes.split(","):
         W, H = (int(v) for v in size.lower().split("x"))
         print(f"building a {args.surfels}-surfel map at {W}x{H} ...", flush=True)
         results.append(bench(H, W, args.surfels, args.frames, args.device, cfg))
 
-    print(f"\nsurfel map benchmark: device={args.device}, torch threads={args.threads}, "
+    print(f"\nsurfel map benchmark: device={args.device}, kernels={args.kernels}, torch threads={args.threads}, "
           f"median over {args.frames} frames (ms; stages are the parts of 'fuse', 'total' = fuse + "
           f"render wall time, 'cpu' = process CPU time of fuse + render, all threads; '_rgb': rendering the "
           f"colour too)")
