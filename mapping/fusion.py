@@ -195,7 +195,8 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
 
     # the visible set includes the ring a render of this view needs (cached for it below); the
     # fusion itself only uses the surfels whose centre lies inside the image
-    vis = visible_set(store, cam, cfg.near_mm, cfg.far_mm, margin_px=float(cfg.splat_max_half))
+    compiled = kernels.use_compiled(cfg, dev)
+    vis = visible_set(store, cam, cfg.near_mm, cfg.far_mm, margin_px=float(cfg.splat_max_half), compiled=compiled)
     timer.lap("cull")
 
     matched_pix = torch.zeros(HW, dtype=torch.bool, device=dev)
@@ -205,7 +206,6 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
     merged = 0
     n_visible = 0
     touched = None
-    compiled = kernels.use_compiled(cfg, dev)
     if len(vis) and compiled:
         matched_pix, free_kill, merge_kill, touched, decayed, n_visible = _associate_compiled(
             store, cfg, cam, meas, vis, frame)

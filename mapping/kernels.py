@@ -342,3 +342,85 @@ def measure(depth, ok, w, rx, ry, fx, fy, max_jump_rel, min_cos, radius_factor,
             free_depth[i] = zc
             weight[i] = w[v, u] if ok[v, u] else zero
             fuse[i] = good
+
+
+@_jit
+def visible_surfels(chunks, slots, chunk_size, n, alive, conf, pos, R_cw, t_cw, fx, fy, cx, cy, near, far,
+                    umin, umax, vmin, vmax, min_conf):
+    """The visible set (:func:`mapping.render.visible_set`) in one pass: the live surfels of the
+    ``chunks`` (int64 chunk ids) and of the int64 ``slots`` (either may be empty) with
+    confidence >= ``min_conf`` whose camera-frame depth lies in ``[near, far]`` and whose projected
+    centre lies in ``[umin, umax) x [vmin, vmax)``.  Returns ``slots (V,)``, camera-frame
+    ``p (V, 3)``, ``u, v (V,)`` (float32, as the torch path)."""
+    f32 = np.float32
+    fx, fy, cx, cy = f32(fx), f32(fy), f32(cx), f32(cy)
+    near, far, umin, umax, vmin, vmax = f32(near), f32(far), f32(umin), f32(umax), f32(vmin), f32(vmax)
+    total = chunks.shape[0] * chunk_size + slots.shape[0]
+    out_slots = np.empty(total, np.int64)
+    out_p = np.empty((total, 3), np.float32)
+    out_u = np.empty(total, np.float32)
+    out_v = np.empty(total, np.float32)
+    nch = chunks.shape[0] * chunk_size
+    k = 0
+    for i in range(total):
+        if i < nch:
+            s = chunks[i // chunk_size] * chunk_size + i % chunk_size
+            if s >= n:
+                continue
+        else:
+            s = slots[i - nch]
+        if not alive[s] or conf[s] < min_conf:
+            continue
+        x = R_cw[0, 0] * pos[s, 0] + R_cw[0, 1] * pos[s, 1] + R_cw[0, 2] * pos[s, 2] + t_cw[0]
+        y = R_cw[1, 0] * pos[s, 0] + R_cw[1, 1] * pos[s, 1] + R_cw[1, 2] * pos[s, 2] + t_cw[1]
+        z = R_cw[2, 0] * pos[s, 0] + R_cw[2, 1] * pos[s, 1] + R_cw[2, 2] * pos[s, 2] + t_cw[2]
+        if z < near or z > far:
+            continue
+        zs = max(z, f32(1e-6))
+        u = x / zs * fx + cx
+        v = y / zs * fy + cy
+        if u < umin or u >= umax or v < vmin or v >= vmax:
+            continue
+        out_slots[k] = s
+        out_p[k, 0] = x
+        out_p[k, 1] = y
+        out_p[k, 2] = z
+        out_u[k] = u
+        out_v[k] = v
+        k += 1
+    return out_slots[:k], out_p[:k], out_u[:k], out_v[:k]
+
+
+@_jit
+def cull_chunks(box_lo, box_hi, R_cw, t_cw, near, far, xmin, xmax, ymin, ymax):
+    """Ids (int64) of the chunks whose box may intersect the frustum (:func:`mapping.render.cull_chunks`,
+    same test: a box is culled when its 8 corners all lie outside one of the 6 planes; boxes with a
+    non-finite bound - empty chunks - are culled)."""
+    nch = box_lo.shape[0]
+    out = np.empty(nch, np.int64)
+    k = 0
+    for c in range(nch):
+        finite = True
+        for a in range(3):
+            finite = finite and np.isfinite(box_lo[c, a]) and np.isfinite(box_hi[c, a])
+        if not finite:
+            continue
+        # per plane: is some corner inside it?
+        n_near = n_far = n_l = n_r = n_t = n_b = False
+        for corner in range(8):
+            px = box_hi[c, 0] if corner & 4 else box_lo[c, 0]
+            py = box_hi[c, 1] if corner & 2 else box_lo[c, 1]
+            pz = box_hi[c, 2] if corner & 1 else box_lo[c, 2]
+            x = R_cw[0, 0] * px + R_cw[0, 1] * py + R_cw[0, 2] * pz + t_cw[0]
+            y = R_cw[1, 0] * px + R_cw[1, 1] * py + R_cw[1, 2] * pz + t_cw[1]
+            z = R_cw[2, 0] * px + R_cw[2, 1] * py + R_cw[2, 2] * pz + t_cw[2]
+            n_near = n_near or z >= near
+            n_far = n_far or z <= far
+            n_l = n_l or x >= xmin * z
+            n_r = n_r or x <= xmax * z
+            n_t = n_t or y >= ymin * z
+            n_b = n_b or y <= ymax * z
+        if n_near and n_far and n_l and n_r and n_t and n_b:
+            out[k] = c
+            k += 1
+    return out[:k]

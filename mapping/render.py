@@ -19,6 +19,7 @@ from typing import Callable
 import torch
 
 from .config import MapConfig
+from . import kernels
 from .surfels import SurfelStore, take
 
 KEY_EMPTY = torch.iinfo(torch.int64).max
@@ -150,14 +151,24 @@ class VisibleSet:
         return int(self.slots.numel())
 
 
-def cull_chunks(store: SurfelStore, cam: Camera, near: float, far: float, margin_px: float) -> torch.Tensor:
+def cull_chunks(store: SurfelStore, cam: Camera, near: float, far: float, margin_px: float,
+                compiled: bool = False) -> torch.Tensor:
     """Bool mask over the used chunks whose bounding box may intersect the view frustum.
 
     The frustum is the image rectangle grown by ``margin_px`` on each side between ``near`` and
-    ``far``; a box is culled when all 8 corners lie outside one of its 6 planes.
+    ``far``; a box is culled when all 8 corners lie outside one of its 6 planes.  ``compiled``:
+    by :func:`mapping.kernels.cull_chunks` (CPU store).
     """
     nch = store.num_chunks
     lo, hi = store.box_lo[:nch], store.box_hi[:nch]
+    xmin = (-0.5 - margin_px - cam.cx) / cam.fx
+    xmax = (cam.width - 0.5 + margin_px - cam.cx) / cam.fx
+    ymin = (-0.5 - margin_px - cam.cy) / cam.fy
+    ymax = (cam.height - 0.5 + margin_px - cam.cy) / cam.fy
+    if compiled:
+        ids = kernels.cull_chunks(lo.numpy(), hi.numpy(), cam.R_cw.contiguous().numpy(), cam.t_cw.numpy(),
+                                  near, far, xmin, xmax, ymin, ymax)
+        return torch.zeros(nch, dtype=torch.bool).index_fill_(0, torch.from_numpy(ids), True)
     finite = torch.isfinite(lo).all(dim=1) & torch.isfinite(hi).all(dim=1)
     lo = torch.where(finite[:, None], lo, 0.0)
     hi = torch.where(finite[:, None], hi, 0.0)
@@ -166,10 +177,6 @@ def cull_chunks(store: SurfelStore, cam: Camera, near: float, far: float, margin
     corners = torch.where(sel[None], hi[:, None, :], lo[:, None, :])          # (B, 8, 3)
     c = cam.to_cam(corners)
     x, y, z = c.unbind(-1)
-    xmin = (-0.5 - margin_px - cam.cx) / cam.fx
-    xmax = (cam.width - 0.5 + margin_px - cam.cx) / cam.fx
-    ymin = (-0.5 - margin_px - cam.cy) / cam.fy
-    ymax = (cam.height - 0.5 + margin_px - cam.cy) / cam.fy
     outside = ((z < near).all(1) | (z > far).all(1)
                | (x < xmin * z).all(1) | (x > xmax * z).all(1)
                | (y < ymin * z).all(1) | (y > ymax * z).all(1))
@@ -177,16 +184,29 @@ def cull_chunks(store: SurfelStore, cam: Camera, near: float, far: float, margin
 
 
 def visible_set(store: SurfelStore, cam: Camera, near: float, far: float, margin_px: float = 0.0,
-                stable_threshold: float | None = None, candidates: torch.Tensor | None = None) -> VisibleSet:
+                stable_threshold: float | None = None, candidates: torch.Tensor | None = None,
+                compiled: bool = False) -> VisibleSet:
     """Live surfels whose centre projects inside the image grown by ``margin_px``, depth in [near, far].
 
     ``stable_threshold``: keep only surfels with at least this confidence.
     ``candidates``: slots known to contain every such surfel (skips the chunk culling).
+    ``compiled``: test the surfels with :func:`mapping.kernels.visible_surfels` (CPU store).
     """
     dev = store.device
     if store.n == 0:
         e = torch.zeros(0, device=dev)
         return VisibleSet(torch.zeros(0, dtype=torch.long, device=dev), torch.zeros(0, 3, device=dev), e, e)
+    if compiled:
+        none = torch.zeros(0, dtype=torch.long)
+        chunks = (cull_chunks(store, cam, near, far, margin_px, compiled=True).nonzero().squeeze(1)
+                  if candidates is None else none)
+        out = kernels.visible_surfels(
+            chunks.numpy(), (none if candidates is None else candidates).numpy(), store.chunk_size, store.n,
+            store.alive.numpy(), store.conf.numpy(), store.pos.numpy(), cam.R_cw.contiguous().numpy(), cam.t_cw.numpy(),
+            cam.fx, cam.fy, cam.cx, cam.cy, near, far, -0.5 - margin_px, cam.width - 0.5 + margin_px,
+            -0.5 - margin_px, cam.height - 0.5 + margin_px,
+            -float("inf") if stable_threshold is None else float(stable_threshold))
+        return VisibleSet(*(torch.from_numpy(x) for x in out))
     if candidates is None:
         slots = store.chunk_candidates(cull_chunks(store, cam, near, far, margin_px))
     else:
@@ -543,5 +563,6 @@ def render(store: SurfelStore, cfg: MapConfig, K, T_wc, height: int, width: int,
     if cached is not None and cached[0] == cam.key and cached[1] == store.version:
         candidates = cached[2]
     vis = visible_set(store, cam, cfg.near_mm, cfg.far_mm, margin_px=float(cfg.splat_max_half),
-                      stable_threshold=cfg.stable_confidence if stable_only else None, candidates=candidates)
+                      stable_threshold=cfg.stable_confidence if stable_only else None, candidates=candidates,
+                      compiled=kernels.use_compiled(cfg, store.device))
     return splat(store, vis, cam, cfg, colour), len(vis)

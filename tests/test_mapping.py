@@ -14,7 +14,7 @@ import torch
 
 from mapping import MapConfig, ModelView, SurfelMap, kernels
 from mapping.fusion import measure
-from mapping.render import Camera, visible_set
+from mapping.render import Camera, cull_chunks, visible_set
 from mapping.config import MapConfigError
 
 H, W = 128, 160
@@ -495,3 +495,27 @@ def test_compiled_fusion_builds_the_same_map_as_torch():
     assert dz.median() < 1e-3 and (dz > 0.05).float().mean() < 0.005
     dc = (va.color - vb.color).abs()[:, both]
     assert dc.mean() < 2e-3
+
+
+@needs_numba
+def test_compiled_culling_and_visible_set_equal_torch():
+    K = intrinsics()
+    m = SurfelMap(MapConfig(kernels="torch", chunk_size=64))
+    for i, T in enumerate(ring_poses(8)):
+        depth, color, _ = ray_cast(T, K)
+        m.fuse(depth, color, K, T, i)
+    st = m.store
+    for T in (pose([1.0, 0.5, 0.0]), pose([30.0, 0.0, 0.0], [0.0, 0.3, 0.0]), pose([0.0, 0.0, 200.0])):
+        cam = Camera.make(K, T, H, W, torch.device("cpu"))
+        a = cull_chunks(st, cam, 5.0, 400.0, 3.0)
+        b = cull_chunks(st, cam, 5.0, 400.0, 3.0, compiled=True)
+        assert torch.equal(a, b)
+        for kw in ({}, {"stable_threshold": 3.0}, {"candidates": torch.arange(0, st.n, 3)}):
+            va = visible_set(st, cam, 5.0, 400.0, 3.0, **kw)
+            vb = visible_set(st, cam, 5.0, 400.0, 3.0, compiled=True, **kw)
+            assert torch.equal(va.slots, vb.slots), kw
+            torch.testing.assert_close(vb.p, va.p, rtol=0, atol=1e-4)
+            torch.testing.assert_close(vb.u, va.u, rtol=0, atol=1e-3)
+            torch.testing.assert_close(vb.v, va.v, rtol=0, atol=1e-3)
+    assert len(visible_set(st, Camera.make(K, pose([1.0, 0.5, 0.0]), H, W, torch.device("cpu")), 5.0, 400.0,
+                           compiled=True)) > 0.5 * H * W
