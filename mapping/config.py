@@ -108,6 +108,11 @@ class MapConfig:
             blend as the colour. Measured on our frame2model runs, ``front`` tracks at least as
             well (mean ATE 0.43 vs 0.47 mm over four sequences) and a depth-only render then
             needs no blending pass (half the render cost).
+        render_cull_hidden_unstable: unstable surfels show only where no stable one covers a pixel;
+            with this, those whose centre pixel a stable surfel covers are not splatted at all
+            (they could only show at the rim of the stable surface). Measured on a scanning run,
+            half of the visible surfels are unstable (measurements that did not associate) and
+            two thirds of those lie under the stable surface: the render does a third less work.
         kernels: how fusion and rendering run: ``torch`` = vectorised torch code on the map's
             device (CPU or GPU); ``compiled`` = the numba kernels of :mod:`mapping.kernels` (CPU
             only; one loop per surfel instead of many tensor passes, several times faster on a
@@ -164,6 +169,7 @@ class MapConfig:
     render_depth_tol_rel: float = 0.02
     render_blend_sigma: float = 0.35
     render_depth: str = "front"
+    render_cull_hidden_unstable: bool = True
 
     # implementation
     kernels: str = "auto"

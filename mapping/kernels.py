@@ -1,41 +1,53 @@
-"""Compiled CPU kernel of the surfel fusion (numba): one pass per surfel instead of ~100 tensor ops.
+"""Compiled CPU kernels of the surfel map (numba): one pass per surfel instead of many tensor ops.
 
-The torch code of :func:`mapping.fusion.fuse_frame` is vectorised over surfels and runs on any
-device; on a CPU its cost is not arithmetic but the traffic of its ~100 small ops (every
-intermediate of every stage written and read back: a flat profile).  :func:`associate_and_update`
-does the same per-surfel work - free-space test, super-sampled index map, projective data
-association, merging of redundant candidates, running averages - in a few loops that keep the
-intermediates in registers, several times faster.  It is selected by ``MapConfig.kernels``
-(``auto``: for a map on the CPU when numba imports); the tests check that both paths build the
-same map.  (The splatting renderer stays in torch: its per-pixel footprint loops ran no faster
-compiled on this kind of CPU, measured.)
+The torch code of :mod:`mapping.fusion` and :mod:`mapping.render` is vectorised over surfels and
+runs on any device; on a CPU much of its cost is not arithmetic but the traffic of its many small
+ops (every intermediate written and read back: a flat profile).  These kernels do the same work
+in a few loops that keep the intermediates in registers:
+
+- :func:`associate_and_update`: the fusion's free-space test, index map, projective data
+  association, merging of redundant candidates, running averages and chunk-box growth;
+- :func:`measure`: the per-pixel points, normals and radii of a frame;
+- :func:`cull_chunks` and :func:`visible_surfels`: view culling and the visible set.
+
+They are selected by ``MapConfig.kernels`` (``auto``: for a map on the CPU when numba is
+installed); the tests check that both paths give the same results.  The splatting passes of the
+renderer stay in torch: compiled (numba, and plain C at -O2) they ran no faster on this kind of
+CPU, measured, since torch evaluates their footprint entries with SIMD.
 
 Kernels take numpy views of CPU tensors (no copies), edit the store's arrays in place, and are
-compiled on first use and cached on disk (``cache=True``).
+compiled on first call and cached on disk (``cache=True``).
 """
 from __future__ import annotations
 
+import functools
+import importlib.util
+
 import numpy as np
 
-try:   # optional: without numba the torch code runs
-    import numba as _nb
-except ImportError:       # pragma: no cover - numba is a dependency; this guards broken installs
-    _nb = None
-
-AVAILABLE = _nb is not None
+AVAILABLE = importlib.util.find_spec("numba") is not None   # optional: without it torch runs
 
 
-def _jit_simd(fn):
-    """Compiled with fast maths (reassociation allowed): for branch-free loops to vectorise."""
-    if _nb is None:
-        return fn
-    return _nb.njit(cache=True, nogil=True, error_model="numpy", fastmath=True)(fn)
+def _compiled_on_first_call(**options):
+    """Decorator: the function is compiled by numba when first called, so that importing the
+    package (a frame2frame run never fuses) does not load numba and LLVM (~100 MB)."""
+    def wrap(fn):
+        compiled = None
+
+        @functools.wraps(fn)
+        def call(*args):
+            nonlocal compiled
+            if compiled is None:
+                import numba
+                compiled = numba.njit(cache=True, nogil=True, error_model="numpy", **options)(fn)
+            return compiled(*args)
+
+        return call
+    return wrap
 
 
-def _jit(fn):
-    if _nb is None:
-        return fn
-    return _nb.njit(cache=True, nogil=True, error_model="numpy")(fn)
+_jit = _compiled_on_first_call()
+_jit_simd = _compiled_on_first_call(fastmath=True)   # branch-free loops: reassociation lets them vectorise
 
 
 def use_compiled(cfg, device) -> bool:

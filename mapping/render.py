@@ -422,31 +422,37 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     Wp = W + 2 * pad
     Hp = H + 2 * pad
     base = ((vc.long() + pad) * Wp + (uc.long() + pad))[None, :]   # padded pixel of the centre
-    # per footprint-size bucket (a few, not a loop over surfels): its surfels' coefficients and
-    # the monomials of its offsets
-    counts = torch.bincount(half, minlength=hmax + 1).tolist()
-    buckets = []
-    for h in range(hmax + 1):
-        if counts[h] == 0:
-            continue
-        if counts[h] == V:
-            sel, per = None, (coef, base, ids, stab, c4)
-        else:
-            sel = (half == h).nonzero().squeeze(1)
-            per = tuple(x.index_select(1, sel) for x in (coef, base, ids, stab, c4))
-        off = torch.arange(-h, h + 1, device=dev, dtype=torch.float32)
-        oy, ox = torch.meshgrid(off, off, indexing="ij")
-        ox, oy = ox.reshape(-1), oy.reshape(-1)
-        k2 = ox.numel()
-        table = {"1": torch.ones_like(ox), "x": ox, "y": oy, "rr": ox * ox + oy * oy,
-                 "xx": ox * ox, "xy": ox * oy, "yy": oy * oy}
-        basis = torch.zeros(nblk * k2, ncoef, device=dev)
-        col = 0
-        for bi, ms in enumerate(monos):
-            basis[bi * k2:(bi + 1) * k2, col:col + len(ms)] = torch.stack([table[m] for m in ms], 1)
-            col += len(ms)
-        offs = (oy.long() * Wp + ox.long())[:, None]
-        buckets.append((sel, per, basis, offs, k2))
+    def make_buckets(subset: torch.Tensor | None) -> list:
+        """Per footprint-size bucket (a few, not a loop over surfels) of the surfels ``subset``
+        (indices into the visible set; None = all): their coefficients and the monomials of the
+        offsets."""
+        hs = half if subset is None else half.index_select(0, subset)
+        counts = torch.bincount(hs, minlength=hmax + 1).tolist()
+        out = []
+        for h in range(hmax + 1):
+            if counts[h] == 0:
+                continue
+            if subset is None and counts[h] == V:
+                sel, per = None, (coef, base, ids, stab, c4)
+            else:
+                sel = (hs == h).nonzero().squeeze(1)
+                if subset is not None:
+                    sel = subset.index_select(0, sel)
+                per = tuple(x.index_select(1, sel) for x in (coef, base, ids, stab, c4))
+            off = torch.arange(-h, h + 1, device=dev, dtype=torch.float32)
+            oy, ox = torch.meshgrid(off, off, indexing="ij")
+            ox, oy = ox.reshape(-1), oy.reshape(-1)
+            k2 = ox.numel()
+            table = {"1": torch.ones_like(ox), "x": ox, "y": oy, "rr": ox * ox + oy * oy,
+                     "xx": ox * ox, "xy": ox * oy, "yy": oy * oy}
+            basis = torch.zeros(nblk * k2, ncoef, device=dev)
+            col = 0
+            for bi, ms in enumerate(monos):
+                basis[bi * k2:(bi + 1) * k2, col:col + len(ms)] = torch.stack([table[m] for m in ms], 1)
+                col += len(ms)
+            offs = (oy.long() * Wp + ox.long())[:, None]
+            out.append((sel, per, basis, offs, k2))
+        return out
 
     def chunks(b):
         S = b[1][0].shape[1]
@@ -472,13 +478,33 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
 
     # ---- pass 1: front surface (z-buffer) --------------------------------------------------------
     buf = torch.zeros(Hp * Wp, dtype=torch.long, device=dev)
-    for b in buckets:
-        _, (_, _, idk, stb, _), _, _, _ = b
-        for s0, s1 in chunks(b):
-            _, qf, inside, pix = entries(b, s0, s1)
-            zv = (qf + stb[:, s0:s1]).mul_(inside).long()        # 0 off the footprint
-            key = torch.add(idk[:, s0:s1], zv, alpha=1 << 32)    # z-buffer value << 32 | surfel
-            buf.scatter_reduce_(0, pix.view(-1), key.view(-1), reduce="amax")
+
+    def front_pass(bks: list) -> None:
+        for b in bks:
+            _, (_, _, idk, stb, _), _, _, _ = b
+            for s0, s1 in chunks(b):
+                _, qf, inside, pix = entries(b, s0, s1)
+                zv = (qf + stb[:, s0:s1]).mul_(inside).long()        # 0 off the footprint
+                key = torch.add(idk[:, s0:s1], zv, alpha=1 << 32)    # z-buffer value << 32 | surfel
+                buf.scatter_reduce_(0, pix.view(-1), key.view(-1), reduce="amax")
+
+    stable = conf >= cfg.stable_confidence
+    n_stable = int(stable.sum())
+    if cfg.render_cull_hidden_unstable and 0 < n_stable < V:
+        # stable surfels first; an unstable surfel whose centre pixel a stable one covers could
+        # only show at the rim of the stable surface: it is not splatted (a third of the entries)
+        buckets = make_buckets(stable.nonzero().squeeze(1))
+        front_pass(buckets)
+        unst = (~stable).nonzero().squeeze(1)
+        hidden = (take(buf, take(base[0], unst)) >> 32) > _Q_MAX
+        unst = take(unst, (~hidden).nonzero().squeeze(1))
+        if unst.numel():
+            rest = make_buckets(unst)
+            front_pass(rest)
+            buckets += rest
+    else:
+        buckets = make_buckets(None)
+        front_pass(buckets)
     # ---- pass 2: blend the surfels of the front surface ---------------------------------------------
     # an entry takes part when its z-buffer value exceeds the pixel's threshold
     # (2^30 if the front is stable) + q_front * z_front / (z_front + tol),

@@ -519,3 +519,43 @@ def test_compiled_culling_and_visible_set_equal_torch():
             torch.testing.assert_close(vb.v, va.v, rtol=0, atol=1e-3)
     assert len(visible_set(st, Camera.make(K, pose([1.0, 0.5, 0.0]), H, W, torch.device("cpu")), 5.0, 400.0,
                            compiled=True)) > 0.5 * H * W
+
+
+def test_hidden_unstable_surfels_are_not_splatted_and_the_view_keeps_its_surface():
+    """Unstable duplicates under a stable surface (the noisy frames after many exact ones) change
+    nothing where the stable surface is seen; unstable surfels on their own still render."""
+    K = intrinsics()
+    m = SurfelMap(MapConfig(kernels="torch"))
+    poses = ring_poses(8)
+    for i, T in enumerate(poses):
+        depth, color, _ = ray_cast(T, K)
+        m.fuse(depth, color, K, T, i)
+    g = torch.Generator().manual_seed(5)
+    T = pose([1.0, 0.5, 0.0])
+    depth, color, _ = ray_cast(T, K)
+    # a frame whose normals disagree with the map: nothing associates, all of it is new and unstable
+    m.config.assoc_normal_deg = 1e-3
+    m.fuse(depth + 0.2 * torch.randn(depth.shape, generator=g), color, K, T, 8)
+    m.config.assoc_normal_deg = 35.0
+    conf = m.store.conf[: m.store.n]
+    assert (conf[m.store.alive[: m.store.n]] < 3.0).sum() > 0.5 * H * W
+    views = {}
+    for cull in (True, False):
+        m.config.render_cull_hidden_unstable = cull
+        views[cull] = m.render(K, T, H, W)
+    a, b = views[True], views[False]
+    stable = b.confidence >= 3.0
+    assert stable.float().mean() > 0.8
+    for x, y in [(a.depth, b.depth), (a.index, b.index), (a.confidence, b.confidence)]:
+        assert torch.equal(x[stable], y[stable])
+    torch.testing.assert_close(a.color[:, stable], b.color[:, stable])
+    assert (a.valid ^ b.valid).float().mean() < 0.002
+    # a map of unstable surfels only renders as before
+    fresh = SurfelMap(MapConfig(kernels="torch"))
+    fresh.fuse(depth, color, K, T, 0)
+    views = {}
+    for cull in (True, False):
+        fresh.config.render_cull_hidden_unstable = cull
+        views[cull] = fresh.render(K, T, H, W)
+    assert views[True].valid.float().mean() > 0.95
+    assert torch.equal(views[True].depth, views[False].depth)
