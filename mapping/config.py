@@ -109,10 +109,10 @@ class MapConfig:
             well (mean ATE 0.43 vs 0.47 mm over four sequences) and a depth-only render then
             needs no blending pass (half the render cost).
         render_cull_hidden_unstable: unstable surfels show only where no stable one covers a pixel;
-            with this, those whose centre pixel a stable surfel covers are not splatted at all
-            (they could only show at the rim of the stable surface). Measured on a scanning run,
-            half of the visible surfels are unstable (measurements that did not associate) and
-            two thirds of those lie under the stable surface: the render does a third less work.
+            with this, those whose footprint stable surfels cover (its centre pixel and the 8
+            pixels at its corners and edge midpoints) are not splatted at all. On a scanning run
+            half of the visible surfels are unstable (measurements that did not associate), most
+            of them under the stable surface: the render does a fifth less work.
         kernels: how fusion and rendering run: ``torch`` = vectorised torch code on the map's
             device (CPU or GPU); ``compiled`` = the numba kernels of :mod:`mapping.kernels` (CPU
             only; one loop per surfel instead of many tensor passes, several times faster on a

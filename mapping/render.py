@@ -491,12 +491,17 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     stable = conf >= cfg.stable_confidence
     n_stable = int(stable.sum())
     if cfg.render_cull_hidden_unstable and 0 < n_stable < V:
-        # stable surfels first; an unstable surfel whose centre pixel a stable one covers could
-        # only show at the rim of the stable surface: it is not splatted (a third of the entries)
+        # stable surfels first; an unstable surfel whose footprint stable ones cover (its centre
+        # pixel and the 8 pixels at its corners and edge midpoints) would not show: not splatted
         buckets = make_buckets(stable.nonzero().squeeze(1))
         front_pass(buckets)
         unst = (~stable).nonzero().squeeze(1)
-        hidden = (take(buf, take(base[0], unst)) >> 32) > _Q_MAX
+        ub = take(base[0], unst)
+        uh = take(half, unst)
+        hidden = torch.ones_like(unst, dtype=torch.bool)
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                hidden &= (take(buf, ub + uh * (dy * Wp + dx)) >> 32) > _Q_MAX
         unst = take(unst, (~hidden).nonzero().squeeze(1))
         if unst.numel():
             rest = make_buckets(unst)
