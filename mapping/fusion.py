@@ -25,6 +25,9 @@ Per frame:
    unmatched fusable pixels become new surfels with ``conf = w``.
 6. *Time window*: unstable surfels still unstable ``unstable_window`` frames after their creation
    are removed (slots are in creation order, so only the surfels reaching that age are inspected).
+
+Steps 1-5 are vectorised torch (any device); for a map on the CPU they run by default as the
+compiled loops of :mod:`mapping.kernels` (``MapConfig.kernels``), which give the same map.
 """
 from __future__ import annotations
 

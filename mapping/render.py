@@ -319,7 +319,9 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     ``(stable * 2^30 + quantised inverse depth) << 32 | surfel``: the front surface of every pixel
     and its front-most surfel (``index``, ``normals``, ``confidence``).  Stable surfels (confidence
     >= ``stable_confidence``) take precedence: unstable ones (fresh, or noise not yet removed) only
-    show where no stable surfel covers the pixel, as in ElasticFusion's model prediction.  Pass 2
+    show where no stable surfel covers the pixel, as in ElasticFusion's model prediction (with
+    ``render_cull_hidden_unstable`` the stable surfels are z-buffered first and unstable ones whose
+    footprint they cover are not splatted at all).  Pass 2
     (blending) keeps, per pixel, the entries of the front's class (stable or not) within
     ``max(render_depth_tol_mm, render_depth_tol_rel * depth)`` behind the front depth - the surfels
     of the visible surface - and averages their colour (and with ``render_depth: blended`` their plane depth) with the weights
