@@ -56,6 +56,12 @@ class MapConfig:
             merged into the winner (and removed) when their centres are closer than this times the
             smaller radius (Keller et al. 2013); 0 disables merging.
 
+        skip_covered: a fusable pixel that matched no surfel but lies on the disc of a surfel centred
+            in a neighbouring pixel, within the association's depth and normal tolerances, adds
+            no new surfel (it is already represented: the renderer shows that surfel there).
+            Association only pairs a pixel with the surfels whose centre falls inside it, and on
+            a mapped surface about one pixel in eight holds none: without this each would add a
+            duplicate surfel every frame (12 % of a scanning frame's pixels).
         stable_confidence: surfels whose accumulated confidence reaches this are *stable*.
         max_confidence: confidence is clamped to this (keeps a long-lived surfel able to adapt).
         unstable_window: an unstable surfel still unstable ``unstable_window`` frames after its
@@ -144,6 +150,7 @@ class MapConfig:
     assoc_conf_tie_rel: float = 0.05
     radius_update_ratio: float = 1.5
     merge_radius_factor: float = 1.0
+    skip_covered: bool = True
 
     # confidence and removal
     stable_confidence: float = 3.0

@@ -209,8 +209,9 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
     merged = 0
     n_visible = 0
     touched = None
+    covered = torch.zeros(HW, dtype=torch.bool, device=dev)     # unmatched, on a neighbour's disc
     if len(vis) and compiled:
-        matched_pix, free_kill, merge_kill, touched, decayed, n_visible = _associate_compiled(
+        matched_pix, covered, free_kill, merge_kill, touched, decayed, n_visible = _associate_compiled(
             store, cfg, cam, meas, vis, frame)
         removed += store.kill(free_kill)
         merged = store.kill(merge_kill)
@@ -278,6 +279,9 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
             0, pix, key, reduce="amin")
         chosen_mask = tie & (key == take(best, pix))
         chosen = chosen_mask.nonzero().squeeze(1)
+        if cfg.skip_covered:
+            covered = covered_pixels(store, cfg, cam, meas, pix, take(vis.u, cand), take(vis.v, cand), ps,
+                                     ns, take(store.radius, cslots), take(pix, chosen))
         if cfg.merge_radius_factor > 0:
             merged = merge_redundant(store, cfg, pix, ps, cslots, chosen, ok & ~chosen_mask, HW)
             removed += merged
@@ -308,7 +312,7 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
         timer.lap("update")
 
     # ---- new surfels from unmatched fusable pixels ---------------------------------------------------
-    new = (meas.fuse & ~matched_pix).nonzero().squeeze(1)
+    new = (meas.fuse & ~matched_pix & ~covered).nonzero().squeeze(1)
     if new.numel() > store.chunk_size:
         # append in image-tile order so every chunk covers a compact patch (tight chunk boxes)
         tile = max(8, int(math.sqrt(store.chunk_size)))
@@ -341,7 +345,7 @@ def _associate_compiled(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: M
                         frame: int):
     """Free-space test, index map, association, merging and update by the compiled kernel
     (:func:`mapping.kernels.associate_and_update`, CPU); returns torch tensors
-    ``(matched_pix, free_kill, merge_kill, touched)`` and the counts ``decayed, n_visible``."""
+    ``(matched_pix, covered, free_kill, merge_kill, touched)`` and the counts ``decayed, n_visible``."""
     H, W = cam.height, cam.width
     np_ = lambda x: x.contiguous().numpy()           # noqa: E731 - views of CPU tensors
     out = kernels.associate_and_update(
@@ -354,10 +358,49 @@ def _associate_compiled(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: M
         float(cfg.free_space_rel), float(cfg.free_space_mm), float(cfg.assoc_depth_rel),
         float(cfg.assoc_depth_mm), math.cos(math.radians(cfg.assoc_normal_deg)),
         float(cfg.assoc_conf_tie_rel), float(cfg.merge_radius_factor), float(cfg.stable_confidence),
-        float(cfg.free_space_decay), float(cfg.radius_update_ratio), float(cfg.max_confidence), int(frame))
-    matched_pix, free_kill, merge_kill, touched, decayed, n_visible = out
-    return (torch.from_numpy(matched_pix), torch.from_numpy(free_kill), torch.from_numpy(merge_kill),
-            torch.from_numpy(touched), int(decayed), int(n_visible))
+        float(cfg.free_space_decay), float(cfg.radius_update_ratio), float(cfg.max_confidence), int(frame),
+        bool(cfg.skip_covered), cam.f)
+    matched_pix, covered, free_kill, merge_kill, touched, decayed, n_visible = out
+    return (torch.from_numpy(matched_pix), torch.from_numpy(covered), torch.from_numpy(free_kill),
+            torch.from_numpy(merge_kill), torch.from_numpy(touched), int(decayed), int(n_visible))
+
+
+def covered_pixels(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measurement, pix: torch.Tensor,
+                   u: torch.Tensor, v: torch.Tensor, ps: torch.Tensor, ns: torch.Tensor, radius: torch.Tensor,
+                   matched: torch.Tensor) -> torch.Tensor:
+    """``(HW,)`` bool: fusable pixels without a match that lie on the disc of a candidate centred
+    in one of their 8 neighbours and pass the association tests against it (depth and normal).
+
+    Association only pairs a pixel with the surfels whose centre falls inside it; about one pixel
+    in eight of a mapped surface holds none (the centres are scattered), and each would add a
+    duplicate surfel every frame.  Such a pixel is already represented by its neighbour's surfel
+    (the renderer shows that surfel there), so it adds nothing (``MapConfig.skip_covered``).
+
+    Args: the candidates (cell winners) - their pixel ``pix``, projected centre ``u, v``,
+    camera-frame position ``ps`` and normal ``ns``, radius - and the matched pixels ``matched``.
+    """
+    H, W = cam.height, cam.width
+    HW = H * W
+    dev = pix.device
+    free = meas.fuse.clone()
+    free[matched] = False
+    pu, pv = pix % W, torch.div(pix, W, rounding_mode="floor")
+    r_px2 = (0.5 * radius * cam.f / ps[:, 2]).square()      # half the radius: about one pixel
+    cos_thr = math.cos(math.radians(cfg.assoc_normal_deg))
+    covered = torch.zeros(HW, dtype=torch.bool, device=dev)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dx == 0 and dy == 0:
+                continue
+            nu, nv = pu + dx, pv + dy
+            inside = (nu >= 0) & (nu < W) & (nv >= 0) & (nv < H)
+            p = nv.clamp(0, H - 1) * W + nu.clamp(0, W - 1)
+            zm = take(meas.points, p)[:, 2]
+            tol = torch.clamp_min(cfg.assoc_depth_rel * zm, cfg.assoc_depth_mm)
+            hit = (inside & take(free, p) & ((nu - u).square() + (nv - v).square() <= r_px2)
+                   & ((ps[:, 2] - zm).abs() <= tol) & (_rowsum(ns * take(meas.normals, p)) >= cos_thr))
+            covered[take(p, hit.nonzero().squeeze(1))] = True
+    return covered
 
 
 def merge_redundant(store: SurfelStore, cfg: MapConfig, pix: torch.Tensor, ps: torch.Tensor,

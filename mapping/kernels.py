@@ -72,7 +72,7 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
                          pos, normal, radius, color, conf, t_last, box_lo, box_hi, chunk_size,
                          R_cw, R_wc, t_wc, H, W, s,
                          free_rel, free_mm, assoc_rel, assoc_mm, cos_thr, tie_rel, merge_factor,
-                         stable_conf, free_decay, radius_ratio, max_conf, frame):
+                         stable_conf, free_decay, radius_ratio, max_conf, frame, skip_covered, f):
     """Steps 3-5 of :mod:`mapping.fusion` for one frame, on the visible surfels.
 
     Args:
@@ -86,10 +86,13 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
             (the ``s x s`` cells of a pixel hold exactly the surfels whose centre falls in it, so
             the surfels are grouped by pixel and each pixel's cells are z-tested locally: no
             super-sampled buffer).
-        The rest: :class:`mapping.MapConfig` values (``cos_thr`` = cos of ``assoc_normal_deg``).
+        The rest: :class:`mapping.MapConfig` values (``cos_thr`` = cos of ``assoc_normal_deg``),
+        and ``f`` the mean focal length (for :func:`mapping.fusion.covered_pixels`).
 
-    Returns ``(matched_pix (HW,) bool, free_kill, merge_kill, touched (int64 slots),
-    n_decayed, n_visible)``: pixels fused into a surfel, slots to remove (unstable surfels in
+    Returns ``(matched_pix (HW,) bool, covered (HW,) bool, free_kill, merge_kill, touched (int64
+    slots), n_decayed, n_visible)``: pixels fused into a surfel, unmatched pixels on a neighbour
+    candidate's disc (:func:`mapping.fusion.covered_pixels`; all False unless
+    ``skip_covered``), slots to remove (unstable surfels in
     free space; candidates merged into their pixel's winner), slots updated in place, stable surfels whose confidence the free-space test decayed and
     surfels whose centre lies inside the image.
     """
@@ -102,6 +105,7 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
     sub = np.empty(V, np.int64)               # cell within the pixel, cv * s + cu
     z = np.empty(V, np.float32)
     cconf = np.empty(V, np.float32)
+    crad = np.empty(V, np.float32)
     ns = np.empty((V, 3), np.float32)         # surfel normal in the camera frame
     count = np.zeros(HW + 1, np.int64)
     free_kill = np.empty(V, np.int64)
@@ -136,6 +140,7 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
         sub[j] = cv * s + cu
         z[j] = zj
         cconf[j] = conf[slot]
+        crad[j] = radius[slot]
         for a in range(3):
             ns[j, a] = R_cw[a, 0] * normal[slot, 0] + R_cw[a, 1] * normal[slot, 1] + R_cw[a, 2] * normal[slot, 2]
         count[p + 1] += 1
@@ -157,10 +162,12 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
     merge_kill = np.empty(V, np.int64)
     nm = 0
     acc = np.empty(10)                        # conf-weighted sums: position, normal, colour, radius
+    is_cand = np.zeros(V, np.bool_)
+    matched_pix = np.zeros(HW, np.bool_)
     for p in range(HW):
         b0 = count[p]
         b1 = count[p + 1]
-        if b0 == b1 or not m_fuse[p]:
+        if b0 == b1:
             continue
         for k in range(b0, b1):
             cellz[sub[order[k]]] = np.inf
@@ -168,12 +175,17 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
             j = order[k]
             if z[j] < cellz[sub[j]]:
                 cellz[sub[j]] = z[j]
+        for k in range(b0, b1):
+            j = order[k]
+            is_cand[j] = z[j] == cellz[sub[j]]
+        if not m_fuse[p]:
+            continue
         zm = m_points[p, 2]
         tol = max(assoc_rel * zm, assoc_mm)
         best = np.float32(-1.0)
         for k in range(b0, b1):
             j = order[k]
-            if z[j] != cellz[sub[j]] or abs(z[j] - zm) > tol:
+            if not is_cand[j] or abs(z[j] - zm) > tol:
                 continue
             dot = ns[j, 0] * m_normals[p, 0] + ns[j, 1] * m_normals[p, 1] + ns[j, 2] * m_normals[p, 2]
             if dot < cos_thr:
@@ -197,6 +209,7 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
                     wkey = dray
                     win = j
         winner_pix[win] = p
+        matched_pix[p] = True
         if merge_factor <= 0:
             continue
         sb = vis_slots[win]
@@ -241,9 +254,43 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
         if t_max > t_last[sb]:
             t_last[sb] = t_max
         conf[sb] = min(csum + ct, max_conf)
+    # ---- unmatched fusable pixels on the disc of a candidate centred in a neighbouring pixel
+    covered = np.zeros(HW, np.bool_)
+    if skip_covered:
+        for p in range(HW):
+            if not m_fuse[p] or matched_pix[p]:
+                continue
+            pu = p % W
+            pv = p // W
+            zm = m_points[p, 2]
+            tol = max(assoc_rel * zm, assoc_mm)
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    qu = pu + dx
+                    qv = pv + dy
+                    if (dx == 0 and dy == 0) or qu < 0 or qu >= W or qv < 0 or qv >= H:
+                        continue
+                    q = qv * W + qu
+                    for k in range(count[q], count[q + 1]):
+                        j = order[k]
+                        if not is_cand[j] or abs(z[j] - zm) > tol:
+                            continue
+                        du = pu - vis_u[j]
+                        dv = pv - vis_v[j]
+                        rp = 0.5 * crad[j] * f / z[j]
+                        if du * du + dv * dv > rp * rp:
+                            continue
+                        if ns[j, 0] * m_normals[p, 0] + ns[j, 1] * m_normals[p, 1] + ns[j, 2] * m_normals[p, 2] \
+                                < cos_thr:
+                            continue
+                        covered[p] = True
+                        break
+                    if covered[p]:
+                        break
+                if covered[p]:
+                    break
     # ---- running averages of the winners, in visible-set order (each surfel has at most one
     # pixel: its centre's)
-    matched_pix = np.zeros(HW, np.bool_)
     touched = np.empty(V, np.int64)
     nt = 0
     for j in range(V):
@@ -271,7 +318,6 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
         radius[slot] = r_old + a * (r_new - r_old)
         conf[slot] = min(c + w, max_conf)
         t_last[slot] = frame
-        matched_pix[p] = True
         touched[nt] = slot
         nt += 1
         ch = slot // chunk_size
@@ -279,7 +325,7 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
         for k in range(3):
             box_lo[ch, k] = min(box_lo[ch, k], pos[slot, k] - rr)
             box_hi[ch, k] = max(box_hi[ch, k], pos[slot, k] + rr)
-    return matched_pix, free_kill[:nk], merge_kill[:nm], touched[:nt], n_decayed, n_visible
+    return matched_pix, covered, free_kill[:nk], merge_kill[:nm], touched[:nt], n_decayed, n_visible
 
 
 @_jit_simd

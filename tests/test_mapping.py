@@ -162,12 +162,14 @@ def test_panning_grows_with_new_area():
             first_cells = len(keys)
         seen_cells.update(map(tuple, keys))
     # about one surfel per pixel of surface: expected growth = new area in first-frame pixels
-    # (a little less: rim surfels seen only at low radial weight never get confirmed and expire)
+    # (less: rim surfels seen only at low radial weight never get confirmed and expire, and a
+    # pixel within half a radius of a neighbour's surfel adds none - skip_covered)
     expected_new = (len(seen_cells) - first_cells) / first_cells * counts[0]
     growth = counts[-1] - counts[0]
     assert expected_new > 0.5 * counts[0]
-    assert 0.65 * expected_new < growth < 1.3 * expected_new
-    assert len(visible_set(m.store, Camera.make(K, T, H, W, m.device), 5.0, 400.0)) < 1.1 * H * W
+    assert 0.45 * expected_new < growth < 1.3 * expected_new
+    density = len(visible_set(m.store, Camera.make(K, T, H, W, m.device), 5.0, 400.0)) / (H * W)
+    assert 0.8 < density < 1.1
     assert counts[0] < counts[10] < counts[20] < counts[-1]         # grows along the way
 
 
@@ -559,3 +561,28 @@ def test_hidden_unstable_surfels_are_not_splatted_and_the_view_keeps_its_surface
         views[cull] = fresh.render(K, T, H, W)
     assert views[True].valid.float().mean() > 0.95
     assert torch.equal(views[True].depth, views[False].depth)
+
+
+@pytest.mark.parametrize("kernels_mode", ["torch", "compiled"])
+def test_pixels_on_a_neighbours_disc_add_no_duplicate(kernels_mode):
+    """A camera moving by fractions of a pixel over a mapped surface seen with noisy depth (as
+    stereo): pixels into which no surfel centre falls are not turned into duplicate surfels when
+    a neighbour's surfel covers them."""
+    if kernels_mode == "compiled" and not kernels.AVAILABLE:
+        pytest.skip("numba not installed")
+    K = intrinsics()
+    added = {}
+    for skip in (True, False):
+        m = SurfelMap(MapConfig(kernels=kernels_mode, skip_covered=skip))
+        g = torch.Generator().manual_seed(7)
+        stats = []
+        for i in range(8):
+            T = pose([0.13 * i, -0.07 * i, 0.0], [0.0, 0.0, 0.002 * i])
+            depth, color, _ = ray_cast(T, K)
+            depth = depth + 0.2 * torch.randn(depth.shape, generator=g)
+            stats.append(m.fuse(depth, color, K, T, i))
+        added[skip] = sum(st["added"] for st in stats[1:]) / 7
+        view = m.render(K, pose([0.5, -0.2, 0.0]), H, W)
+        assert view.coverage() > 0.99
+    assert added[False] > 0.1 * H * W             # without: a duplicate for every pixel left empty
+    assert added[True] < 0.5 * added[False]
