@@ -56,9 +56,10 @@ class MapConfig:
             merged into the winner (and removed) when their centres are closer than this times the
             smaller radius (Keller et al. 2013); 0 disables merging.
 
-        skip_covered: a fusable pixel that matched no surfel but lies on the disc of a surfel centred
-            in a neighbouring pixel, within the association's depth and normal tolerances, adds
-            no new surfel (it is already represented: the renderer shows that surfel there).
+        skip_covered: a fusable pixel that matched no surfel but lies within half a radius (about a
+            pixel) of a surfel centred in a neighbouring pixel, within the association's depth and
+            normal tolerances, adds no new surfel (it is already represented: the renderer shows
+            that surfel there).
             Association only pairs a pixel with the surfels whose centre falls inside it, and on
             a mapped surface about one pixel in eight holds none: without this each would add a
             duplicate surfel every frame (12 % of a scanning frame's pixels).

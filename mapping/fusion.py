@@ -368,8 +368,9 @@ def _associate_compiled(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: M
 def covered_pixels(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measurement, pix: torch.Tensor,
                    u: torch.Tensor, v: torch.Tensor, ps: torch.Tensor, ns: torch.Tensor, radius: torch.Tensor,
                    matched: torch.Tensor) -> torch.Tensor:
-    """``(HW,)`` bool: fusable pixels without a match that lie on the disc of a candidate centred
-    in one of their 8 neighbours and pass the association tests against it (depth and normal).
+    """``(HW,)`` bool: fusable pixels without a match that lie within half the radius (about a
+    pixel) of a candidate centred in one of their 8 neighbours and pass the association tests
+    against it (depth and normal).
 
     Association only pairs a pixel with the surfels whose centre falls inside it; about one pixel
     in eight of a mapped surface holds none (the centres are scattered), and each would add a

@@ -90,8 +90,8 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
         and ``f`` the mean focal length (for :func:`mapping.fusion.covered_pixels`).
 
     Returns ``(matched_pix (HW,) bool, covered (HW,) bool, free_kill, merge_kill, touched (int64
-    slots), n_decayed, n_visible)``: pixels fused into a surfel, unmatched pixels on a neighbour
-    candidate's disc (:func:`mapping.fusion.covered_pixels`; all False unless
+    slots), n_decayed, n_visible)``: pixels fused into a surfel, unmatched pixels near a neighbour
+    candidate (:func:`mapping.fusion.covered_pixels`; all False unless
     ``skip_covered``), slots to remove (unstable surfels in
     free space; candidates merged into their pixel's winner), slots updated in place, stable surfels whose confidence the free-space test decayed and
     surfels whose centre lies inside the image.
@@ -254,7 +254,7 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
         if t_max > t_last[sb]:
             t_last[sb] = t_max
         conf[sb] = min(csum + ct, max_conf)
-    # ---- unmatched fusable pixels on the disc of a candidate centred in a neighbouring pixel
+    # ---- unmatched fusable pixels within half a radius of a candidate centred in a neighbour
     covered = np.zeros(HW, np.bool_)
     if skip_covered:
         for p in range(HW):
