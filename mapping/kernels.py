@@ -90,11 +90,11 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
         and ``f`` the mean focal length (for :func:`mapping.fusion.covered_pixels`).
 
     Returns ``(matched_pix (HW,) bool, covered (HW,) bool, free_kill, merge_kill, touched (int64
-    slots), n_decayed, n_visible)``: pixels fused into a surfel, unmatched pixels near a neighbour
-    candidate (:func:`mapping.fusion.covered_pixels`; all False unless
-    ``skip_covered``), slots to remove (unstable surfels in
-    free space; candidates merged into their pixel's winner), slots updated in place, stable surfels whose confidence the free-space test decayed and
-    surfels whose centre lies inside the image.
+    slots), n_decayed, n_visible)``: pixels fused into a surfel; unmatched pixels near a neighbour
+    candidate (:func:`mapping.fusion.covered_pixels`; all False unless ``skip_covered``); slots to
+    remove (unstable surfels in free space, candidates merged into their pixel's winner); slots
+    updated in place; the number of stable surfels whose confidence the free-space test decayed;
+    the number of surfels whose centre lies inside the image.
     """
     V = vis_slots.shape[0]
     HW = H * W
