@@ -13,13 +13,14 @@ The index map used by the fusion is a super-sampled depth buffer z-tested with `
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
 
-from .config import MapConfig
 from . import kernels
+from .config import MapConfig
 from .surfels import SurfelStore, take
 
 KEY_EMPTY = torch.iinfo(torch.int64).max
@@ -151,6 +152,21 @@ class VisibleSet:
         return int(self.slots.numel())
 
 
+def _frustum_slopes(cam: Camera, margin_px: float) -> tuple[float, float, float, float]:
+    """``x / z`` and ``y / z`` bounds of the image rectangle grown by ``margin_px``."""
+    return ((-0.5 - margin_px - cam.cx) / cam.fx, (cam.width - 0.5 + margin_px - cam.cx) / cam.fx,
+            (-0.5 - margin_px - cam.cy) / cam.fy, (cam.height - 0.5 + margin_px - cam.cy) / cam.fy)
+
+
+def _culled_chunk_ids(store: SurfelStore, cam: Camera, near: float, far: float, margin_px: float) -> torch.Tensor:
+    """Int64 ids of the chunks :func:`cull_chunks` keeps, by the compiled kernel (CPU store)."""
+    nch = store.num_chunks
+    ids = kernels.cull_chunks(store.box_lo[:nch].numpy(), store.box_hi[:nch].numpy(),
+                              cam.R_cw.contiguous().numpy(), cam.t_cw.numpy(), near, far,
+                              *_frustum_slopes(cam, margin_px))
+    return torch.from_numpy(ids)
+
+
 def cull_chunks(store: SurfelStore, cam: Camera, near: float, far: float, margin_px: float,
                 compiled: bool = False) -> torch.Tensor:
     """Bool mask over the used chunks whose bounding box may intersect the view frustum.
@@ -160,15 +176,11 @@ def cull_chunks(store: SurfelStore, cam: Camera, near: float, far: float, margin
     by :func:`mapping.kernels.cull_chunks` (CPU store).
     """
     nch = store.num_chunks
-    lo, hi = store.box_lo[:nch], store.box_hi[:nch]
-    xmin = (-0.5 - margin_px - cam.cx) / cam.fx
-    xmax = (cam.width - 0.5 + margin_px - cam.cx) / cam.fx
-    ymin = (-0.5 - margin_px - cam.cy) / cam.fy
-    ymax = (cam.height - 0.5 + margin_px - cam.cy) / cam.fy
     if compiled:
-        ids = kernels.cull_chunks(lo.numpy(), hi.numpy(), cam.R_cw.contiguous().numpy(), cam.t_cw.numpy(),
-                                  near, far, xmin, xmax, ymin, ymax)
-        return torch.zeros(nch, dtype=torch.bool).index_fill_(0, torch.from_numpy(ids), True)
+        ids = _culled_chunk_ids(store, cam, near, far, margin_px)
+        return torch.zeros(nch, dtype=torch.bool).index_fill_(0, ids, True)
+    lo, hi = store.box_lo[:nch], store.box_hi[:nch]
+    xmin, xmax, ymin, ymax = _frustum_slopes(cam, margin_px)
     finite = torch.isfinite(lo).all(dim=1) & torch.isfinite(hi).all(dim=1)
     lo = torch.where(finite[:, None], lo, 0.0)
     hi = torch.where(finite[:, None], hi, 0.0)
@@ -198,8 +210,7 @@ def visible_set(store: SurfelStore, cam: Camera, near: float, far: float, margin
         return VisibleSet(torch.zeros(0, dtype=torch.long, device=dev), torch.zeros(0, 3, device=dev), e, e)
     if compiled:
         none = torch.zeros(0, dtype=torch.long)
-        chunks = (cull_chunks(store, cam, near, far, margin_px, compiled=True).nonzero().squeeze(1)
-                  if candidates is None else none)
+        chunks = _culled_chunk_ids(store, cam, near, far, margin_px) if candidates is None else none
         out = kernels.visible_surfels(
             chunks.numpy(), (none if candidates is None else candidates).numpy(), store.chunk_size, store.n,
             store.alive.numpy(), store.conf.numpy(), store.pos.numpy(), cam.R_cw.contiguous().numpy(), cam.t_cw.numpy(),
@@ -424,6 +435,7 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     Wp = W + 2 * pad
     Hp = H + 2 * pad
     base = ((vc.long() + pad) * Wp + (uc.long() + pad))[None, :]   # padded pixel of the centre
+
     def make_buckets(subset: torch.Tensor | None) -> list:
         """Per footprint-size bucket (a few, not a loop over surfels) of the surfels ``subset``
         (indices into the visible set; None = all): their coefficients and the monomials of the
@@ -441,20 +453,26 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
                 if subset is not None:
                     sel = subset.index_select(0, sel)
                 per = tuple(x.index_select(1, sel) for x in (coef, base, ids, stab, c4))
-            off = torch.arange(-h, h + 1, device=dev, dtype=torch.float32)
-            oy, ox = torch.meshgrid(off, off, indexing="ij")
-            ox, oy = ox.reshape(-1), oy.reshape(-1)
-            k2 = ox.numel()
-            table = {"1": torch.ones_like(ox), "x": ox, "y": oy, "rr": ox * ox + oy * oy,
-                     "xx": ox * ox, "xy": ox * oy, "yy": oy * oy}
-            basis = torch.zeros(nblk * k2, ncoef, device=dev)
-            col = 0
-            for bi, ms in enumerate(monos):
-                basis[bi * k2:(bi + 1) * k2, col:col + len(ms)] = torch.stack([table[m] for m in ms], 1)
-                col += len(ms)
-            offs = (oy.long() * Wp + ox.long())[:, None]
-            out.append((sel, per, basis, offs, k2))
+            out.append((sel, per, *offset_basis(h)))
         return out
+
+    @functools.lru_cache(maxsize=None)
+    def offset_basis(h: int):
+        """Monomials of the ``(2h + 1)^2`` pixel offsets, their padded-pixel offsets and count
+        (shared by every bucket of half size ``h``)."""
+        off = torch.arange(-h, h + 1, device=dev, dtype=torch.float32)
+        oy, ox = torch.meshgrid(off, off, indexing="ij")
+        ox, oy = ox.reshape(-1), oy.reshape(-1)
+        k2 = ox.numel()
+        table = {"1": torch.ones_like(ox), "x": ox, "y": oy, "rr": ox * ox + oy * oy,
+                 "xx": ox * ox, "xy": ox * oy, "yy": oy * oy}
+        basis = torch.zeros(nblk * k2, ncoef, device=dev)
+        col = 0
+        for bi, ms in enumerate(monos):
+            basis[bi * k2:(bi + 1) * k2, col:col + len(ms)] = torch.stack([table[m] for m in ms], 1)
+            col += len(ms)
+        offs = (oy.long() * Wp + ox.long())[:, None]
+        return basis, offs, k2
 
     def chunks(b):
         S = b[1][0].shape[1]
@@ -490,7 +508,7 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
                 key = torch.add(idk[:, s0:s1], zv, alpha=1 << 32)    # z-buffer value << 32 | surfel
                 buf.scatter_reduce_(0, pix.view(-1), key.view(-1), reduce="amax")
 
-    stable = conf >= cfg.stable_confidence
+    stable = stab[0] > 0                                      # (stab: the stable surfels' key offset)
     n_stable = int(stable.sum())
     if cfg.render_cull_hidden_unstable and 0 < n_stable < V:
         # stable surfels first; an unstable surfel whose footprint stable ones cover (its centre
