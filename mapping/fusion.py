@@ -41,7 +41,7 @@ import torch
 from . import kernels
 from .config import MapConfig
 from .render import KEY_EMPTY, Camera, cell_winners, visible_set
-from .surfels import SurfelStore, take
+from .surfels import SurfelStore, take, to_rows
 
 
 @dataclass
@@ -114,7 +114,7 @@ def measure(depth: torch.Tensor, color: torch.Tensor, cam: Camera, cfg: MapConfi
                         rx.reshape(-1).numpy(), ry.reshape(-1).numpy(), cam.fx, cam.fy,
                         float(cfg.normal_max_jump_rel), float(cfg.radius_min_cos),
                         cfg.radius_scale * math.sqrt(2.0) / cam.f, *(x.numpy() for x in out.values()))
-        return Measurement(color=color.reshape(3, HW).T.contiguous(), **out)
+        return Measurement(color=to_rows(color.reshape(3, HW)), **out)
     z = torch.where(ok, depth, 0.0)
 
     nx = torch.zeros(H, W, device=dev)
@@ -151,7 +151,7 @@ def measure(depth: torch.Tensor, color: torch.Tensor, cam: Camera, cfg: MapConfi
     P = torch.stack([rx * z, ry * z, z], dim=-1)
     return Measurement(points=P.view(HW, 3), normals=torch.stack([nx, ny, nz], -1).view(HW, 3),
                        radius=radius.view(HW), weight=torch.where(ok, w, 0.0).view(HW),
-                       color=color.reshape(3, HW).T.contiguous(), fuse=(ok & nvalid).view(HW),
+                       color=to_rows(color.reshape(3, HW)), fuse=(ok & nvalid).view(HW),
                        free_depth=z.view(HW))
 
 

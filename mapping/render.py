@@ -21,7 +21,7 @@ import torch
 
 from . import kernels
 from .config import MapConfig
-from .surfels import SurfelStore, take
+from .surfels import SurfelStore, take, to_columns
 
 KEY_EMPTY = torch.iinfo(torch.int64).max
 _ID_MASK = (1 << 32) - 1
@@ -357,8 +357,8 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     r = take(store.radius, slots)
     conf = take(store.conf, slots)
     # per-surfel quantities as contiguous rows (structure of arrays)
-    px, py, pz = vis.p.T.contiguous()
-    nx, ny, nz = n.T.contiguous()
+    px, py, pz = to_columns(vis.p)
+    nx, ny, nz = to_columns(n)
     uc = torch.round(vis.u)
     vc = torch.round(vis.v)
     rx0 = (uc - cam.cx) / cam.fx                              # centre pixel ray (rx0, ry0, 1)
@@ -544,7 +544,7 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     def blend(with_colour: bool) -> torch.Tensor:
         """Per padded pixel ``(C, Hp * Wp)`` sums of the blending weights ``w``, then ``w q`` (with
         ``render_depth: blended``), then ``w rgb`` (with colour)."""
-        colors = take(store.color, slots).T.contiguous() if with_colour else None   # (3, V)
+        colors = to_columns(take(store.color, slots)) if with_colour else None   # (3, V)
         acc = torch.zeros(1 + blend_depth + (3 if with_colour else 0), Hp * Wp, device=dev)
         for b in buckets:
             sel, (_, _, _, stb, cq), _, _, _ = b
@@ -586,14 +586,14 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
             acc = crop(blend(True))
         wsum = acc[0]
         return torch.where(wsum > 1e-30, acc[-3:] / wsum.clamp_min(1e-30),
-                           take(store.color, wslots).T * valid).reshape(3, H, W)
+                           to_columns(take(store.color, wslots)) * valid).reshape(3, H, W)
 
     vm = valid[:, None].float()
     normals = take(n, vidx) * vm
     confidence = take(conf, vidx) * valid
     index = torch.where(valid, wslots, -1)
     view = ModelView(color=torch.zeros(3, H, W, device=dev), depth=depth.reshape(H, W),
-                     normals=normals.T.reshape(3, H, W), confidence=confidence.reshape(H, W),
+                     normals=to_columns(normals).reshape(3, H, W), confidence=confidence.reshape(H, W),
                      valid=valid.reshape(H, W), index=index.reshape(H, W))
     if colour:
         view.color = colour_of(acc)

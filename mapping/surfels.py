@@ -21,6 +21,17 @@ def take(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return x.index_select(0, idx)
 
 
+def to_columns(x: torch.Tensor) -> torch.Tensor:
+    """``(N, C)`` -> contiguous ``(C, N)``, equal to ``x.T.contiguous()`` (which torch copies element
+    by element on a CPU: stacking the few columns is about 5x faster)."""
+    return torch.stack(x.unbind(1))
+
+
+def to_rows(x: torch.Tensor) -> torch.Tensor:
+    """``(C, N)`` -> contiguous ``(N, C)``, equal to ``x.T.contiguous()`` (see :func:`to_columns`)."""
+    return torch.stack(x.unbind(0), 1)
+
+
 def _morton3(x: torch.Tensor) -> torch.Tensor:
     """Spread the low 21 bits of int64 ``x`` to every third bit (3-D Morton / Z-order code)."""
     x = x & 0x1FFFFF
