@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import torch
@@ -96,10 +97,15 @@ class StereoOdometry:
         device: torch device.
         weight_networks: networks to use in ``learned`` mode (loaded from the config's checkpoint
             when None).
+        weight_hook: optional ``hook(cur, ref, flow, w2d, w3d) -> (w2d, w3d)`` applied to the weight
+            maps before every solve (analysis: ``tools/oracle_weights.py`` masks them with ground
+            truth); ``(1, 1, H, W)`` maps, ``flow`` the temporal flow ``(1, 2, H, W)``.
     """
 
     def __init__(self, camera: StereoCamera, config: VOConfig, device: str = "cpu",
-                 weight_networks: WeightNetworks | None = None):
+                 weight_networks: WeightNetworks | None = None,
+                 weight_hook: Callable[..., tuple[torch.Tensor, torch.Tensor]] | None = None):
+        self.weight_hook = weight_hook
         self.camera = camera
         self.config = config
         self.device = torch.device(device)
@@ -245,6 +251,8 @@ class StereoOdometry:
         target, valid, valid3, points_ref = self.build_problem(cur, ref, flow, fb_ok)
         w2d, w3d = self._weights(cur, ref, flow, valid)
         w3d = w3d * valid3
+        if self.weight_hook is not None:
+            w2d, w3d = self.weight_hook(cur, ref, flow, w2d, w3d)
         t2 = time.perf_counter()
         dmax = self.config.depth.max_depth_mm
         s2, s3 = PoseProblem.scales(*flow.shape[-2:])
