@@ -16,10 +16,7 @@ renderer stay in torch: compiled (numba, and plain C at -O2) they ran no faster 
 CPU, measured, since torch evaluates their footprint entries with SIMD.
 
 Kernels take numpy views of CPU tensors (no copies), edit the store's arrays in place, and are
-compiled on first call and cached on disk (``cache=True``).  Their loops over image rows and over
-surfels run in parallel (``prange``, on torch's thread count); each iteration edits its own
-surfels and the lists they produce are compacted in a fixed order, so the map does not depend on
-the number of threads.
+compiled on first call and cached on disk (``cache=True``).
 """
 from __future__ import annotations
 
@@ -28,22 +25,12 @@ import importlib.util
 
 import numpy as np
 
-# the kernels' parallel loop: numba.prange once the first kernel compiles (importing numba here
-# would load it and LLVM in runs that never fuse); numba reads it when it compiles a kernel
-prange = range
-
 AVAILABLE = importlib.util.find_spec("numba") is not None   # optional: without it torch runs
 
 
 def _compiled_on_first_call(**options):
     """Decorator: the function is compiled by numba when first called, so that importing the
-    package (a frame2frame run never fuses) does not load numba and LLVM (~100 MB).
-
-    With ``parallel=True`` the kernel's ``prange`` loops run on as many threads as torch is set
-    to use (``torch.set_num_threads``: the run's ``threads`` setting; a benchmark worker pinned to
-    one thread stays on one), at most numba's pool size."""
-    parallel = options.get("parallel", False)
-
+    package (a frame2frame run never fuses) does not load numba and LLVM (~100 MB)."""
     def wrap(fn):
         compiled = None
 
@@ -52,13 +39,7 @@ def _compiled_on_first_call(**options):
             nonlocal compiled
             if compiled is None:
                 import numba
-                fn.__globals__["prange"] = numba.prange
                 compiled = numba.njit(cache=True, nogil=True, error_model="numpy", **options)(fn)
-            if parallel:
-                import numba
-                import torch
-
-                numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
             return compiled(*args)
 
         return call
@@ -67,8 +48,6 @@ def _compiled_on_first_call(**options):
 
 _jit = _compiled_on_first_call()
 _jit_simd = _compiled_on_first_call(fastmath=True)   # branch-free loops: reassociation lets them vectorise
-_jit_parallel = _compiled_on_first_call(parallel=True)
-_jit_simd_parallel = _compiled_on_first_call(fastmath=True, parallel=True)
 
 
 def use_compiled(cfg, device) -> bool:
@@ -87,7 +66,7 @@ def use_compiled(cfg, device) -> bool:
     return AVAILABLE and cpu
 
 
-@_jit_parallel
+@_jit
 def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
                          m_points, m_normals, m_radius, m_weight, m_color, m_fuse, m_free_depth,
                          pos, normal, radius, color, conf, t_last, box_lo, box_hi, chunk_size,
@@ -120,35 +99,40 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
     V = vis_slots.shape[0]
     HW = H * W
     Ws = W * s
-    # ---- pass 1 (parallel over the visible set, in the store's slot order: cache friendly): pixel
-    # and cell of every surfel, free-space test, and the store values the association needs
+    # ---- pass 1, in visible-set order (the store's slot order: cache friendly): pixel and cell of
+    # every surfel, free-space test, and the store values the association needs, gathered
     pix = np.full(V, -1, np.int64)            # -1: centre outside the image or in free space
     sub = np.empty(V, np.int64)               # cell within the pixel, cv * s + cu
     z = np.empty(V, np.float32)
     cconf = np.empty(V, np.float32)
     crad = np.empty(V, np.float32)
     ns = np.empty((V, 3), np.float32)         # surfel normal in the camera frame
-    state = np.zeros(V, np.int8)              # 0 outside the image, 1 inside, 2 freed, 3 decayed
-    for j in prange(V):
+    count = np.zeros(HW + 1, np.int64)
+    free_kill = np.empty(V, np.int64)
+    nk = 0
+    n_decayed = 0
+    n_visible = 0
+    for j in range(V):
         fu = vis_u[j] + np.float32(0.5)       # float32 as the torch path (same cells)
         fv = vis_v[j] + np.float32(0.5)
         if fu < 0 or fu >= W or fv < 0 or fv >= H:
             continue
+        n_visible += 1
         pu = int(fu)
         pv = int(fv)
         p = pv * W + pu
         zj = vis_p[j, 2]
         slot = vis_slots[j]
         D = m_free_depth[p]
-        state[j] = 1
         if D > 0:
             margin = max(max(free_rel * D, free_mm), max(assoc_rel * D, assoc_mm))
             if zj < D - margin:               # seen through: neither occludes nor matches
                 if conf[slot] < stable_conf:
-                    state[j] = 2
+                    free_kill[nk] = slot
+                    nk += 1
                 else:
                     conf[slot] = conf[slot] * free_decay
-                    state[j] = 3
+                    n_decayed += 1
                 continue
         pix[j] = p
         cu = min(int(fu * np.float32(s)), Ws - 1) - pu * s
@@ -159,23 +143,8 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
         crad[j] = radius[slot]
         for a in range(3):
             ns[j, a] = R_cw[a, 0] * normal[slot, 0] + R_cw[a, 1] * normal[slot, 1] + R_cw[a, 2] * normal[slot, 2]
+        count[p + 1] += 1
     # ---- surfels grouped by pixel (counting sort, stable: visible-set order within a pixel)
-    count = np.zeros(HW + 1, np.int64)
-    free_kill = np.empty(V, np.int64)
-    nk = 0
-    n_decayed = 0
-    n_visible = 0
-    for j in range(V):
-        if state[j] == 0:
-            continue
-        n_visible += 1
-        if state[j] == 2:
-            free_kill[nk] = vis_slots[j]
-            nk += 1
-        elif state[j] == 3:
-            n_decayed += 1
-        elif pix[j] >= 0:
-            count[pix[j] + 1] += 1
     for p in range(HW):
         count[p + 1] += count[p]
     fill = count[:HW].copy()
@@ -185,153 +154,146 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
         if p >= 0:
             order[fill[p]] = j
             fill[p] += 1
-    # ---- per pixel (parallel over image rows: a surfel belongs to one pixel, so the pixels' edits
-    # of the store are disjoint): index-map cells (nearest surfel per cell = the candidates),
-    # association tests, the winner, and merging of the redundant matching candidates into it
+    # ---- per pixel: index-map cells (nearest surfel per cell = the candidates), association
+    # tests, the winner, and merging of the redundant matching candidates into it
+    cellz = np.empty(s * s, np.float32)
     okj = np.zeros(V, np.bool_)
     winner_pix = np.full(V, -1, np.int64)
-    merged = np.zeros(V, np.bool_)
-    is_cand = np.zeros(V, np.bool_)
-    matched_pix = np.zeros(HW, np.bool_)
-    for pv in prange(H):
-        cellz = np.empty(s * s, np.float32)
-        acc = np.empty(10)                    # conf-weighted sums: position, normal, colour, radius
-        for pu in range(W):
-            p = pv * W + pu
-            b0 = count[p]
-            b1 = count[p + 1]
-            if b0 == b1:
-                continue
-            for k in range(b0, b1):
-                cellz[sub[order[k]]] = np.inf
-            for k in range(b0, b1):
-                j = order[k]
-                if z[j] < cellz[sub[j]]:
-                    cellz[sub[j]] = z[j]
-            for k in range(b0, b1):
-                j = order[k]
-                is_cand[j] = z[j] == cellz[sub[j]]
-            if not m_fuse[p]:
-                continue
-            zm = m_points[p, 2]
-            tol = max(assoc_rel * zm, assoc_mm)
-            best = np.float32(-1.0)
-            for k in range(b0, b1):
-                j = order[k]
-                if not is_cand[j] or abs(z[j] - zm) > tol:
-                    continue
-                dot = ns[j, 0] * m_normals[p, 0] + ns[j, 1] * m_normals[p, 1] + ns[j, 2] * m_normals[p, 2]
-                if dot < cos_thr:
-                    continue
-                okj[j] = True
-                if cconf[j] > best:
-                    best = cconf[j]
-            if best < 0:
-                continue
-            # most confident wins; near-ties go to the candidate closest to the pixel's ray (its
-            # cell offset from the pixel centre, in half cells), then to the first
-            win = -1
-            wkey = np.iinfo(np.int64).max
-            for k in range(b0, b1):
-                j = order[k]
-                if okj[j] and cconf[j] >= best * (1.0 - tie_rel):
-                    a_off = 2 * (sub[j] % s) - (s - 1)
-                    b_off = 2 * (sub[j] // s) - (s - 1)
-                    dray = a_off * a_off + b_off * b_off
-                    if dray < wkey:
-                        wkey = dray
-                        win = j
-            winner_pix[win] = p
-            matched_pix[p] = True
-            if merge_factor <= 0:
-                continue
-            sb = vis_slots[win]
-            csum = 0.0
-            acc[:] = 0.0
-            t_max = -1
-            for k in range(b0, b1):
-                j = order[k]
-                if j == win or not okj[j]:
-                    continue
-                so = vis_slots[j]
-                d2 = 0.0
-                for a in range(3):
-                    d = vis_p[j, a] - vis_p[win, a]
-                    d2 += d * d
-                if np.sqrt(d2) > merge_factor * min(radius[so], radius[sb]):
-                    continue
-                co = conf[so]
-                csum += co
-                for a in range(3):
-                    acc[a] += co * pos[so, a]
-                    acc[3 + a] += co * normal[so, a]
-                    acc[6 + a] += co * color[so, a]
-                acc[9] += co * radius[so]
-                t_max = max(t_max, np.int64(t_last[so]))
-                merged[j] = True
-            if t_max < 0:
-                continue
-            ct = conf[sb]
-            cs = max(csum + ct, 1e-12)
-            nn = 0.0
-            for a in range(3):
-                pos[sb, a] = (acc[a] + pos[sb, a] * ct) / cs
-                normal[sb, a] = (acc[3 + a] + normal[sb, a] * ct) / cs
-                color[sb, a] = (acc[6 + a] + color[sb, a] * ct) / cs
-                nn += normal[sb, a] * normal[sb, a]
-            nn = max(np.sqrt(nn), 1e-12)
-            for a in range(3):
-                normal[sb, a] = normal[sb, a] / nn
-            radius[sb] = (acc[9] + radius[sb] * ct) / cs
-            if t_max > t_last[sb]:
-                t_last[sb] = t_max
-            conf[sb] = min(csum + ct, max_conf)
-    # the merged candidates in pixel order, each pixel's in visible-set order
     merge_kill = np.empty(V, np.int64)
     nm = 0
-    for k in range(count[HW]):
-        j = order[k]
-        if merged[j]:
-            merge_kill[nm] = vis_slots[j]
+    acc = np.empty(10)                        # conf-weighted sums: position, normal, colour, radius
+    is_cand = np.zeros(V, np.bool_)
+    matched_pix = np.zeros(HW, np.bool_)
+    for p in range(HW):
+        b0 = count[p]
+        b1 = count[p + 1]
+        if b0 == b1:
+            continue
+        for k in range(b0, b1):
+            cellz[sub[order[k]]] = np.inf
+        for k in range(b0, b1):
+            j = order[k]
+            if z[j] < cellz[sub[j]]:
+                cellz[sub[j]] = z[j]
+        for k in range(b0, b1):
+            j = order[k]
+            is_cand[j] = z[j] == cellz[sub[j]]
+        if not m_fuse[p]:
+            continue
+        zm = m_points[p, 2]
+        tol = max(assoc_rel * zm, assoc_mm)
+        best = np.float32(-1.0)
+        for k in range(b0, b1):
+            j = order[k]
+            if not is_cand[j] or abs(z[j] - zm) > tol:
+                continue
+            dot = ns[j, 0] * m_normals[p, 0] + ns[j, 1] * m_normals[p, 1] + ns[j, 2] * m_normals[p, 2]
+            if dot < cos_thr:
+                continue
+            okj[j] = True
+            if cconf[j] > best:
+                best = cconf[j]
+        if best < 0:
+            continue
+        # most confident wins; near-ties go to the candidate closest to the pixel's ray (its cell
+        # offset from the pixel centre, in half cells), then to the first
+        win = -1
+        wkey = np.iinfo(np.int64).max
+        for k in range(b0, b1):
+            j = order[k]
+            if okj[j] and cconf[j] >= best * (1.0 - tie_rel):
+                a_off = 2 * (sub[j] % s) - (s - 1)
+                b_off = 2 * (sub[j] // s) - (s - 1)
+                dray = a_off * a_off + b_off * b_off
+                if dray < wkey:
+                    wkey = dray
+                    win = j
+        winner_pix[win] = p
+        matched_pix[p] = True
+        if merge_factor <= 0:
+            continue
+        sb = vis_slots[win]
+        csum = 0.0
+        acc[:] = 0.0
+        t_max = -1
+        for k in range(b0, b1):
+            j = order[k]
+            if j == win or not okj[j]:
+                continue
+            so = vis_slots[j]
+            d2 = 0.0
+            for a in range(3):
+                d = vis_p[j, a] - vis_p[win, a]
+                d2 += d * d
+            if np.sqrt(d2) > merge_factor * min(radius[so], radius[sb]):
+                continue
+            co = conf[so]
+            csum += co
+            for a in range(3):
+                acc[a] += co * pos[so, a]
+                acc[3 + a] += co * normal[so, a]
+                acc[6 + a] += co * color[so, a]
+            acc[9] += co * radius[so]
+            t_max = max(t_max, np.int64(t_last[so]))
+            merge_kill[nm] = so
             nm += 1
+        if t_max < 0:
+            continue
+        ct = conf[sb]
+        cs = max(csum + ct, 1e-12)
+        nn = 0.0
+        for a in range(3):
+            pos[sb, a] = (acc[a] + pos[sb, a] * ct) / cs
+            normal[sb, a] = (acc[3 + a] + normal[sb, a] * ct) / cs
+            color[sb, a] = (acc[6 + a] + color[sb, a] * ct) / cs
+            nn += normal[sb, a] * normal[sb, a]
+        nn = max(np.sqrt(nn), 1e-12)
+        for a in range(3):
+            normal[sb, a] = normal[sb, a] / nn
+        radius[sb] = (acc[9] + radius[sb] * ct) / cs
+        if t_max > t_last[sb]:
+            t_last[sb] = t_max
+        conf[sb] = min(csum + ct, max_conf)
     # ---- unmatched fusable pixels within half a radius of a candidate centred in a neighbour
     covered = np.zeros(HW, np.bool_)
     if skip_covered:
-        for pv in prange(H):
-            for pu in range(W):
-                p = pv * W + pu
-                if not m_fuse[p] or matched_pix[p]:
-                    continue
-                zm = m_points[p, 2]
-                tol = max(assoc_rel * zm, assoc_mm)
-                for dy in range(-1, 2):
-                    for dx in range(-1, 2):
-                        qu = pu + dx
-                        qv = pv + dy
-                        if (dx == 0 and dy == 0) or qu < 0 or qu >= W or qv < 0 or qv >= H:
+        for p in range(HW):
+            if not m_fuse[p] or matched_pix[p]:
+                continue
+            pu = p % W
+            pv = p // W
+            zm = m_points[p, 2]
+            tol = max(assoc_rel * zm, assoc_mm)
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    qu = pu + dx
+                    qv = pv + dy
+                    if (dx == 0 and dy == 0) or qu < 0 or qu >= W or qv < 0 or qv >= H:
+                        continue
+                    q = qv * W + qu
+                    for k in range(count[q], count[q + 1]):
+                        j = order[k]
+                        if not is_cand[j] or abs(z[j] - zm) > tol:
                             continue
-                        q = qv * W + qu
-                        for k in range(count[q], count[q + 1]):
-                            j = order[k]
-                            if not is_cand[j] or abs(z[j] - zm) > tol:
-                                continue
-                            du = pu - vis_u[j]
-                            dv = pv - vis_v[j]
-                            rp = 0.5 * crad[j] * f / z[j]
-                            if du * du + dv * dv > rp * rp:
-                                continue
-                            if ns[j, 0] * m_normals[p, 0] + ns[j, 1] * m_normals[p, 1] + ns[j, 2] * m_normals[p, 2] \
-                                    < cos_thr:
-                                continue
-                            covered[p] = True
-                            break
-                        if covered[p]:
-                            break
+                        du = pu - vis_u[j]
+                        dv = pv - vis_v[j]
+                        rp = 0.5 * crad[j] * f / z[j]
+                        if du * du + dv * dv > rp * rp:
+                            continue
+                        if ns[j, 0] * m_normals[p, 0] + ns[j, 1] * m_normals[p, 1] + ns[j, 2] * m_normals[p, 2] \
+                                < cos_thr:
+                            continue
+                        covered[p] = True
+                        break
                     if covered[p]:
                         break
-    # ---- running averages of the winners (parallel: each surfel has at most one pixel, its
-    # centre's)
-    for j in prange(V):
+                if covered[p]:
+                    break
+    # ---- running averages of the winners, in visible-set order (each surfel has at most one
+    # pixel: its centre's)
+    touched = np.empty(V, np.int64)
+    nt = 0
+    for j in range(V):
         p = winner_pix[j]
         if p < 0:
             continue
@@ -356,13 +318,6 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
         radius[slot] = r_old + a * (r_new - r_old)
         conf[slot] = min(c + w, max_conf)
         t_last[slot] = frame
-    # the updated slots, and the chunk boxes grown to hold them (serial: chunks are shared)
-    touched = np.empty(V, np.int64)
-    nt = 0
-    for j in range(V):
-        if winner_pix[j] < 0:
-            continue
-        slot = vis_slots[j]
         touched[nt] = slot
         nt += 1
         ch = slot // chunk_size
@@ -373,7 +328,7 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
     return matched_pix, covered, free_kill[:nk], merge_kill[:nm], touched[:nt], n_decayed, n_visible
 
 
-@_jit_simd_parallel
+@_jit_simd
 def measure(depth, ok, w, rx, ry, fx, fy, max_jump_rel, min_cos, radius_factor,
             points, normals, radius, weight, fuse, free_depth):
     """Per-pixel measurements of one frame (:func:`mapping.fusion.measure`, same formulas).
@@ -399,10 +354,10 @@ def measure(depth, ok, w, rx, ry, fx, fy, max_jump_rel, min_cos, radius_factor,
     cmin = np.float32(min_cos)
     rf = np.float32(radius_factor)
     z = np.empty((H, W), np.float32)
-    for v in prange(H):
+    for v in range(H):
         for u in range(W):
             z[v, u] = depth[v, u] if ok[v, u] else zero
-    for v in prange(H):                       # rows in parallel
+    for v in range(H):
         interior_row = 0 < v < H - 1
         vt = max(v - 1, 0)
         vb = min(v + 1, H - 1)
@@ -447,7 +402,7 @@ def measure(depth, ok, w, rx, ry, fx, fy, max_jump_rel, min_cos, radius_factor,
             fuse[i] = good
 
 
-@_jit_parallel
+@_jit
 def visible_surfels(chunks, slots, chunk_size, n, alive, conf, pos, R_cw, t_cw, fx, fy, cx, cy, near, far,
                     umin, umax, vmin, vmax, min_conf):
     """The visible set (:func:`mapping.render.visible_set`) in one pass: the live surfels of the
@@ -464,8 +419,8 @@ def visible_surfels(chunks, slots, chunk_size, n, alive, conf, pos, R_cw, t_cw, 
     out_u = np.empty(total, np.float32)
     out_v = np.empty(total, np.float32)
     nch = chunks.shape[0] * chunk_size
-    keep = np.zeros(total, np.bool_)
-    for i in prange(total):                   # the test in parallel, then compaction in order
+    k = 0
+    for i in range(total):
         if i < nch:
             s = chunks[i // chunk_size] * chunk_size + i % chunk_size
             if s >= n:
@@ -484,23 +439,13 @@ def visible_surfels(chunks, slots, chunk_size, n, alive, conf, pos, R_cw, t_cw, 
         v = y / zs * fy + cy
         if u < umin or u >= umax or v < vmin or v >= vmax:
             continue
-        keep[i] = True
-        out_slots[i] = s
-        out_p[i, 0] = x
-        out_p[i, 1] = y
-        out_p[i, 2] = z
-        out_u[i] = u
-        out_v[i] = v
-    k = 0
-    for i in range(total):
-        if keep[i]:
-            out_slots[k] = out_slots[i]
-            out_p[k, 0] = out_p[i, 0]
-            out_p[k, 1] = out_p[i, 1]
-            out_p[k, 2] = out_p[i, 2]
-            out_u[k] = out_u[i]
-            out_v[k] = out_v[i]
-            k += 1
+        out_slots[k] = s
+        out_p[k, 0] = x
+        out_p[k, 1] = y
+        out_p[k, 2] = z
+        out_u[k] = u
+        out_v[k] = v
+        k += 1
     return out_slots[:k], out_p[:k], out_u[:k], out_v[:k]
 
 

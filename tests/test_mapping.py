@@ -497,34 +497,6 @@ def test_compiled_fusion_builds_the_same_map_as_torch():
     assert dc.mean() < 2e-3
 
 
-def test_compiled_fusion_is_the_same_on_one_and_two_threads():
-    """The kernels' parallel loops (rows of pixels, surfels) edit disjoint surfels and compact
-    their lists in a fixed order: the map is bit-identical whatever the thread count."""
-    K = intrinsics()
-    stores = []
-    threads = torch.get_num_threads()
-    try:
-        for n in (1, 2):
-            torch.set_num_threads(n)
-            g = torch.Generator().manual_seed(3)
-            m = SurfelMap(MapConfig(kernels="compiled"))
-            for i in range(10):
-                a = 2 * math.pi * i / 10
-                T = pose([5 * math.cos(a), 5 * math.sin(a), 0.0], [0.03 * math.sin(a), 0.02, 0.1 * a])
-                depth, color, _ = ray_cast(T, K)
-                depth = depth + 0.15 * torch.randn(depth.shape, generator=g)
-                if i == 6:    # stable surfels pushed into free space
-                    depth[50:70, 60:90] += 10.0
-                m.fuse(depth, color, K, T, i, weight=torch.rand(depth.shape, generator=g) * 0.9 + 0.1)
-            stores.append(m.store)
-    finally:
-        torch.set_num_threads(threads)
-    a, b = stores
-    assert a.n == b.n and a.num_alive > 3000
-    for name in ("pos", "normal", "radius", "color", "conf", "t_last", "alive"):
-        assert torch.equal(getattr(a, name)[:a.n], getattr(b, name)[:b.n]), name
-
-
 def test_compiled_culling_and_visible_set_equal_torch():
     K = intrinsics()
     m = SurfelMap(MapConfig(kernels="torch", chunk_size=64))
