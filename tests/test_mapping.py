@@ -581,3 +581,37 @@ def test_pixels_on_a_neighbours_disc_add_no_duplicate(kernels_mode):
         assert view.coverage() > 0.99
     assert added[False] > 0.1 * H * W             # without: a duplicate for every pixel left empty
     assert added[True] < 0.5 * added[False]
+
+
+def _fuse_two_frames(out=None) -> int:
+    """Fuse two frames with the compiled kernels; returns the map size (also put on ``out``, a
+    queue, when run in a worker process)."""
+    K = intrinsics()
+    m = SurfelMap(MapConfig(kernels="compiled"))
+    for i, T in enumerate((pose([0.0, 0.0, 0.0]), pose([1.0, 0.0, 0.0]))):
+        depth, color, _ = ray_cast(T, K)
+        m.fuse(depth, color, K, T, i)
+    if out is not None:
+        out.put(len(m))
+    return len(m)
+
+
+def test_a_process_that_fused_can_fork_workers_that_fuse():
+    """Benchmarks and users' scripts fork worker processes after the parent ran a frame2model
+    pipeline: the kernels must leave the process forkable (an OpenMP-parallel kernel did not: the
+    child was killed or hung)."""
+    import multiprocessing
+
+    size = _fuse_two_frames()
+    torch.ones(512, 512).matmul(torch.ones(512, 512))     # torch's own thread pool is up too
+    ctx = multiprocessing.get_context("fork")
+    out = ctx.Queue()
+    child = ctx.Process(target=_fuse_two_frames, args=(out,))
+    child.start()
+    child.join(timeout=120)
+    if child.is_alive():
+        child.kill()
+        child.join()
+        pytest.fail("the forked worker hung")
+    assert child.exitcode == 0, f"the forked worker died (exit code {child.exitcode})"
+    assert out.get(timeout=5) == size > 1000
