@@ -76,9 +76,7 @@ def test_corrupt_frame_is_reported_not_fatal(synth_dir, tmp_path):
 
 
 def test_sigint_leaves_a_valid_trajectory(synth_dir, tmp_path):
-    # long enough that the run is still going when the signal comes (30 frames at this size can
-    # finish between two polls on a busy machine)
-    data = synth_dir("rigid", 150, (160, 128))
+    data = synth_dir("rigid", 30, (160, 128))
     out = tmp_path / "interrupted"
     proc = subprocess.Popen([*SLAM, "run", str(data), "--weights", "constant", "--out", str(out), "--quiet",
                              "--set", "solver.method=lbfgs"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -93,7 +91,7 @@ def test_sigint_leaves_a_valid_trajectory(synth_dir, tmp_path):
     assert proc.returncode == 130, err
     stamps, poses = read_tum(traj)
     m = json.loads((out / "metrics.json").read_text())
-    assert m["interrupted"] is True and 3 <= len(stamps) < 150 and m["frames"] == len(stamps)
+    assert m["interrupted"] is True and 3 <= len(stamps) < 30 and m["frames"] == len(stamps)
     assert m["stopped_before_frame"] == len(stamps)
     assert np.isfinite(poses).all()
 
