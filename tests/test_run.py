@@ -78,8 +78,11 @@ def test_corrupt_frame_is_reported_not_fatal(synth_dir, tmp_path):
 def test_sigint_leaves_a_valid_trajectory(synth_dir, tmp_path):
     data = synth_dir("rigid", 30, (160, 128))
     out = tmp_path / "interrupted"
+    # the run gets the default SIGINT action even when the tests themselves run as a background
+    # job (a shell without job control starts those with SIGINT ignored, and children inherit it)
     proc = subprocess.Popen([*SLAM, "run", str(data), "--weights", "constant", "--out", str(out), "--quiet",
-                             "--set", "solver.method=lbfgs"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             "--set", "solver.method=lbfgs"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     traj = out / "trajectory.txt"
     deadline = time.time() + 120
     while time.time() < deadline:
