@@ -151,7 +151,7 @@ def training_sequences(cfg: TrainConfig, progress: bool = True) -> list[Path]:
     return paths
 
 
-def _relative_rect(gt: np.ndarray, R1: np.ndarray, i: int, j: int) -> np.ndarray:
+def relative_rect_transform(gt: np.ndarray, R1: np.ndarray, i: int, j: int) -> np.ndarray:
     """Ground-truth transform from rectified camera j to rectified camera i (mm)."""
     M = np.eye(4)
     M[:3, :3] = R1
@@ -166,7 +166,7 @@ def sample_pairs(gt: np.ndarray, R1: np.ndarray, cfg: TrainDataConfig, rng: rand
             j = i + gap
             if j >= len(gt):
                 break
-            T = _relative_rect(gt, R1, i, j)
+            T = relative_rect_transform(gt, R1, i, j)
             angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)))
             is_moving = np.linalg.norm(T[:3, 3]) > cfg.moving_threshold_mm or angle > cfg.moving_threshold_deg
             (moving if is_moving else static).append((i, j, is_moving))
@@ -230,7 +230,7 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
             keep[idx.numel():] = False
             idx = torch.cat([idx, idx[:1].expand(pad)])
         pts = backproject(cur.depth / dmax, odo.K).flatten(2)[0][:, idx]
-        T = torch.as_tensor(_relative_rect(dataset.gt_poses, dataset.R1, i, j))
+        T = torch.as_tensor(relative_rect_transform(dataset.gt_poses, dataset.R1, i, j))
         T[:3, 3] /= dmax
         pix = torch.stack([idx % W, idx // W]).float()
         samples.append({

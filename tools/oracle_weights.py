@@ -35,7 +35,7 @@ def pair_motion(nonrigid_cur: torch.Tensor, nonrigid_ref: torch.Tensor, flow: to
 def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: list[float]) -> list[dict]:
     from slam.config import load_config
     from slam.datasets import open_dataset
-    from slam.training import _relative_rect
+    from slam.training import relative_rect_transform
     from vo.odometry import StereoOdometry
 
     cfg = load_config(None, ["logging.progress=false", *overrides])
@@ -49,7 +49,6 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
         if setting["mask"] == "none":          # the learned w3D where it weighs a pixel
             sel = w3 > 0
             setting["stats"].append((w3[sel], motion[sel], setting["cur"][sel]))
-        if setting["mask"] == "none":
             return w2, w3
         keep = (motion <= setting["threshold"]).to(w3.dtype)
         return (w2 * keep if setting["mask"] == "w2D & w3D" else w2), w3 * keep
@@ -71,7 +70,7 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
             for k in range(gap, len(ds)):
                 setting["cur"], setting["ref"] = nonrigid[k], nonrigid[k - gap]
                 result = odo.track(views[k], views[k - gap])
-                rel_gt = _relative_rect(ds.gt_poses, ds.R1, k - gap, k)
+                rel_gt = relative_rect_transform(ds.gt_poses, ds.R1, k - gap, k)
                 errors.append(float(np.linalg.norm(result.relative[:3, 3] - rel_gt[:3, 3])))
                 if gap == 1:
                     T, T_gt = T @ result.relative, T_gt @ rel_gt
