@@ -120,11 +120,12 @@ class MapConfig:
             pixels at its corners and edge midpoints) are not splatted at all. On a scanning run
             half of the visible surfels are unstable (measurements that did not associate), most
             of them under the stable surface: about 15 % less render time (paired runs).
-        kernels: how the fusion and the view culling run: ``torch`` = vectorised torch code on the
-            map's device (CPU or GPU); ``compiled`` = the numba kernels of :mod:`mapping.kernels`
-            (CPU only; one loop per surfel instead of many tensor passes: fusion 15 against 27-36
-            ms with a million surfels); ``auto`` = ``compiled`` for a CPU map when numba is
-            installed, else ``torch``. The splatting passes are torch either way.
+        kernels: how the fusion, the view culling and the splatting passes run: ``torch`` =
+            vectorised torch code on the map's device (CPU or GPU); ``compiled`` = the numba
+            kernels of :mod:`mapping.kernels` (CPU only; one loop per surfel instead of many tensor
+            passes: with a million surfels fusion 15 against 27-45 ms, the colour render 14
+            against 22-25 ms); ``auto`` = ``compiled`` for a CPU map when numba is installed, else
+            ``torch``. (``render_exact_discs`` footprints are splatted by torch either way.)
 
         mesh_density_quantile: Poisson vertices whose density is below this quantile are trimmed.
         mesh_trim_radius_factor: Poisson vertices farther than this many median surfel radii from

@@ -10,6 +10,7 @@ surfel`` (the front surface); pass 2 blends the colour and plane depth of the su
 surface with weights falling off with the distance from the pixel centre to each surfel's
 projected centre (``scatter_add``), so the view is sharp and sub-pixel exact (surface splatting).
 The index map used by the fusion is a super-sampled depth buffer z-tested with ``scatter_reduce``.
+On a CPU map the two splatting passes run compiled (:mod:`mapping.kernels`, same formulas).
 """
 from __future__ import annotations
 
@@ -344,7 +345,10 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
 
     All per-entry arithmetic is float (no boolean masks: they are several times slower on CPU),
     evaluated in chunks of about ``_CHUNK`` entries whose temporaries the allocator recycles; pass 2
-    recomputes the entries rather than storing them.
+    recomputes the entries rather than storing them.  On a CPU map (``MapConfig.kernels``) both
+    passes run as the compiled loops :func:`mapping.kernels.splat_front` and
+    :func:`mapping.kernels.splat_blend` over the same per-surfel coefficients (circular footprints;
+    the exact-disc footprint is splatted by torch).
     """
     H, W = cam.height, cam.width
     dev = store.device
@@ -500,6 +504,10 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     buf = torch.zeros(Hp * Wp, dtype=torch.long, device=dev)
 
     def front_pass(bks: list) -> None:
+        if compiled:
+            for order in bks:
+                kernels.splat_front(buf.numpy(), Wp, order.numpy(), *per_surfel, float(_Q_MAX))
+            return
         for b in bks:
             _, (_, _, idk, stb, _), _, _, _ = b
             for s0, s1 in chunks(b):
@@ -507,6 +515,15 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
                 zv = (qf + stb[:, s0:s1]).mul_(inside).long()        # 0 off the footprint
                 key = torch.add(idk[:, s0:s1], zv, alpha=1 << 32)    # z-buffer value << 32 | surfel
                 buf.scatter_reduce_(0, pix.view(-1), key.view(-1), reduce="amax")
+
+    # compiled passes (CPU, circular footprints): the surfel lists stay lists, no footprint buckets
+    compiled = kernels.use_compiled(cfg, dev) and not cfg.render_exact_discs
+    if compiled:
+        per_surfel = (base[0].contiguous().numpy(), half.contiguous().numpy(), coef.contiguous().numpy(),
+                      stab[0].contiguous().numpy())
+
+        def make_buckets(subset: torch.Tensor | None) -> list:  # noqa: F811
+            return [torch.arange(V) if subset is None else subset]
 
     stable = stab[0] > 0                                      # (stab: the stable surfels' key offset)
     n_stable = int(stable.sum())
@@ -546,6 +563,14 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
         ``render_depth: blended``), then ``w rgb`` (with colour)."""
         colors = to_columns(take(store.color, slots)) if with_colour else None   # (3, V)
         acc = torch.zeros(1 + blend_depth + (3 if with_colour else 0), Hp * Wp, device=dev)
+        if compiled:
+            sums = torch.zeros(Hp * Wp, 5)                  # w, w q, w rgb per pixel, interleaved
+            cols = (colors if colors is not None else torch.zeros(3, V)).contiguous().numpy()
+            for order in buckets:
+                kernels.splat_blend(sums.numpy(), Wp, order.numpy(), *per_surfel, c4[0].contiguous().numpy(),
+                                    k_pow, thr.contiguous().numpy(), cols)
+            keep = [0] + ([1] if blend_depth else []) + ([2, 3, 4] if with_colour else [])
+            return torch.stack([sums[:, c] for c in keep])
         for b in buckets:
             sel, (_, _, _, stb, cq), _, _, _ = b
             cs = None if colors is None else (colors if sel is None else colors.index_select(1, sel))
