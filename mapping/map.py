@@ -62,6 +62,25 @@ class SurfelMap:
             self.last_timings = dict(timer.times)
         return stats
 
+    def warm_up(self) -> None:
+        """Compile (or load from numba's cache) the kernels the fusion and the renderer use, by
+        fusing and rendering a small plane in a throwaway map with this map's config and device.
+        The first call of a compiled kernel otherwise stalls the first frame by about half a second
+        (importing numba, loading the machine code); runs call this before their clock starts.
+        This map is not touched."""
+        scratch = SurfelMap(self.config, self.device)
+        H, W = 24, 32
+        K = torch.tensor([[30.0, 0.0, 16.0], [0.0, 30.0, 12.0], [0.0, 0.0, 1.0]])
+        depth = torch.full((H, W), 0.5 * (self.config.min_depth_mm + self.config.max_depth_mm), device=self.device)
+        color = torch.full((3, H, W), 0.5, device=self.device)
+        weight = torch.ones(H, W, device=self.device)
+        valid = torch.ones(H, W, dtype=torch.bool, device=self.device)
+        for i in range(2):
+            T = torch.eye(4)
+            T[0, 3] = 0.5 * i
+            scratch.fuse(depth, color, K, T, i, weight=weight, valid=valid)
+            scratch.render(K, T, H, W, colour=False).with_colour()
+
     # ------------------------------------------------------------------ rendering
     def render(self, K, T_wc, height: int, width: int, stable_only: bool = False, colour: bool = True) -> ModelView:
         """Splat the map into a ``height x width`` view from ``T_wc`` (see :class:`ModelView`);

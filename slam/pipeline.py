@@ -125,6 +125,7 @@ class Pipeline:
             from mapping import SurfelMap
 
             self.map = SurfelMap(config.map, device=config.device)
+            self.map.warm_up()      # compiled kernels loaded now, not in the first frame's time
         tc = config.tracking
         # frame2model reference: the flow goes against the last real frame (last_frame, chained)
         # or the model's colour (rendered, chained), which only then is rendered

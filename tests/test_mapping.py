@@ -649,3 +649,17 @@ def test_a_process_that_fused_can_fork_workers_that_fuse():
         pytest.fail("the forked worker hung")
     assert child.exitcode == 0, f"the forked worker died (exit code {child.exitcode})"
     assert out.get(timeout=5) == size > 1000
+
+
+@pytest.mark.parametrize("kernels_mode", ["torch", "compiled"])
+def test_warm_up_leaves_the_map_empty_and_fusion_works_after_it(kernels_mode):
+    m = SurfelMap(MapConfig(kernels=kernels_mode))
+    m.warm_up()
+    assert len(m) == 0 and m.store.n == 0 and m.frames_fused == 0
+    K = intrinsics()
+    depth, color, _ = ray_cast(pose([0.0, 0.0, 0.0]), K)
+    m.fuse(depth, color, K, pose([0.0, 0.0, 0.0]), 0)
+    assert len(m) > 0.9 * H * W
+    view = m.render(K, pose([0.0, 0.0, 0.0]), H, W)
+    assert view.coverage() > 0.95
+    torch.testing.assert_close(view.depth[view.valid].median(), depth[view.valid].median(), rtol=0, atol=0.05)
