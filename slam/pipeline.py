@@ -92,7 +92,7 @@ def normalised_fusion_weight(w3d: torch.Tensor, valid: torch.Tensor) -> torch.Te
     vals = w3d[weighed]
     if vals.numel() == 0:
         return valid.to(w3d.dtype)
-    ref = torch.quantile(vals.float()[:: max(1, vals.numel() // 20000)], 0.5).clamp(min=1e-12)
+    ref = vals.float()[:: max(1, vals.numel() // 20000)].median().clamp(min=1e-12)   # (quantile: 8x slower)
     return torch.where(weighed, (w3d / ref).clamp(0, 1), valid.to(w3d.dtype))
 
 
