@@ -14,6 +14,7 @@ tracking renders by default (depth, normals, confidence: the flow goes against t
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
@@ -148,6 +149,7 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--kernels", default="auto", choices=["auto", "compiled", "torch"],
                     help="MapConfig.kernels: compiled (numba, CPU) or torch code")
+    ap.add_argument("--json", default="", help="also write the per-size medians to this JSON file")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     cfg = MapConfig(kernels=args.kernels)
@@ -179,6 +181,10 @@ def main(argv=None) -> int:
             else:
                 cells.append(f"{v:>10.1f}")
         print(" | ".join(cells))
+    if args.json:
+        settings = {"device": args.device, "kernels": args.kernels, "threads": args.threads, "frames": args.frames}
+        with open(args.json, "w") as fh:
+            json.dump({"settings": settings, "results": results}, fh, indent=2)
     return 0
 
 

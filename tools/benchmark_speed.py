@@ -6,7 +6,10 @@
 For each size it renders a synthetic `scanning` sequence (seed 4242, an evaluation seed), then runs
 `slam run` in a fresh process per (mode, size) in the default configuration (plus any --set),
 and prints a table of per-stage milliseconds, fps, peak memory and ATE, so speed bought with
-accuracy shows in the same table. Results are also written as markdown and JSON.
+accuracy shows in the same table. The maps of these runs hold 0.1-0.3 M surfels; a second table
+gives the map's cost per frame with a million surfels (``tools/benchmark_mapping.py`` on
+``--map-sizes``: fusion, depth-only and colour render, fusion + colour render, the frame2model
+default's cost). Results are also written as markdown and JSON.
 """
 from __future__ import annotations
 
@@ -27,6 +30,9 @@ def main() -> None:
     ap.add_argument("--scenario", default="scanning")
     ap.add_argument("--out", default="runs/benchmark_speed")
     ap.add_argument("--set", action="append", default=[])
+    ap.add_argument("--map-surfels", type=int, default=1_000_000,
+                    help="map size of the fusion + render table (0: skip it)")
+    ap.add_argument("--map-sizes", nargs="+", default=["320x256"])
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -61,9 +67,37 @@ def main() -> None:
                                                 (f"{v:.3f}" if isinstance(v, float) else str(v))))
         lines.append("| " + " | ".join(cells) + " |")
     table = "\n".join(lines)
+    map_rows = map_cost(args.map_sizes, args.map_surfels, out) if args.map_surfels > 0 else []
+    if map_rows:
+        table += "\n\n" + map_table(map_rows, args.map_surfels)
     print(table)
     (out / "speed.md").write_text(table + "\n")
-    (out / "speed.json").write_text(json.dumps(rows, indent=2))
+    (out / "speed.json").write_text(json.dumps({"runs": rows, "map_cost": map_rows}, indent=2))
+
+
+def map_cost(sizes: list[str], surfels: int, out: Path) -> list[dict]:
+    """Fusion and render medians with a ``surfels``-surfel map (``tools/benchmark_mapping.py``)."""
+    path = out / "map_cost.json"
+    cmd = [sys.executable, str(Path(__file__).with_name("benchmark_mapping.py")), "--sizes", ",".join(sizes),
+           "--surfels", str(surfels), "--json", str(path)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        print(proc.stderr, file=sys.stderr)
+        return [{"size": ",".join(sizes), "error": proc.stderr.strip().splitlines()[-1:]}]
+    return json.loads(path.read_text())["results"]
+
+
+def map_table(rows: list[dict], surfels: int) -> str:
+    lines = [f"map cost per frame with a {surfels / 1e6:g} M-surfel map (medians, ms):", "",
+             "| size | surfels | visible | fusion | render (depth) | render (colour) | fusion + colour render |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['size']} | error: {r['error']} | | | | | |")
+            continue
+        lines.append(f"| {r['size']} | {r['surfels']} | {int(r['visible'])} | {r['fuse']:.1f} | {r['render']:.1f} | "
+                     f"{r['render_rgb']:.1f} | {r['total_rgb']:.1f} |")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,30 @@
+"""tools/benchmark_speed.py end to end on a tiny sequence: the runs' table and the map-cost table."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+import benchmark_speed as B  # noqa: E402
+
+
+def test_speed_benchmark_reports_runs_and_the_map_cost(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "speed"
+    monkeypatch.setattr(sys, "argv", ["benchmark_speed.py", "--frames", "8", "--sizes", "160x128",
+                                      "--map-surfels", "20000", "--map-sizes", "160x128", "--out", str(out)])
+    B.main()
+    data = json.loads((out / "speed.json").read_text())
+    runs = {r["mode"]: r for r in data["runs"]}
+    assert set(runs) == {"frame2frame", "frame2model"}
+    for r in runs.values():
+        assert r["failed"] == 0 and r["fps"] > 0 and 0 < r["ate_rmse_mm"] < 1.0
+    assert runs["frame2model"]["render_ms"] > 0 and runs["frame2model"]["fusion_ms"] > 0
+    assert runs["frame2frame"]["render_ms"] is None
+    (cost,) = data["map_cost"]
+    assert cost["size"] == "160x128" and cost["surfels"] >= 20000 and 0 < cost["visible"] < cost["surfels"]
+    assert 0 < cost["fuse"] < cost["total_rgb"] and cost["render_rgb"] > 0
+    table = (out / "speed.md").read_text()
+    assert "| 160x128 | frame2model |" in table
+    assert f"| 160x128 | {cost['surfels']} | {int(cost['visible'])} | {cost['fuse']:.1f} |" in table
+    assert table in capsys.readouterr().out
