@@ -96,6 +96,23 @@ def normalised_fusion_weight(w3d: torch.Tensor, valid: torch.Tensor) -> torch.Te
     return torch.where(weighed, (w3d / ref).clamp(0, 1), valid.to(w3d.dtype))
 
 
+def mean_brightness(view: View) -> float:
+    """Mean grey level (0-255) of ``view``'s valid pixels (of all pixels when under 1 % are valid:
+    a dark frame may have no stereo depth at all)."""
+    gray = torch.from_numpy(view.gray)
+    valid = view.valid[0, 0].cpu()
+    if valid.shape == gray.shape and int(valid.sum()) >= 0.01 * valid.numel():
+        gray = gray[valid]
+    return float(gray.float().mean()) if gray.numel() else 0.0
+
+
+def exposure_gain(brightness: float, level: float, lo: float = 0.25, hi: float = 8.0) -> float:
+    """The gain that brings a frame of mean ``brightness`` to the map's exposure ``level`` (both
+    0-255 grey), clamped to ``[lo, hi]``: exposure is a global factor on the image (the light's
+    intensity, the exposure time), so the fused colour is ``image x gain``."""
+    return float(min(max(level / max(brightness, 0.5), lo), hi))
+
+
 class Pipeline:
     """One run over a dataset.
 
@@ -137,6 +154,7 @@ class Pipeline:
                                       and config.weights.residuals != "2d")
         self.timings: dict[str, list[float]] = {}
         self.fallbacks = 0
+        self.exposure_level: Optional[float] = None     # the map's exposure: the first fused frame's
 
     # --------------------------------------------------------------------------------------
     def _initial_rect_pose(self) -> np.ndarray:
@@ -179,7 +197,15 @@ class Pipeline:
         weight = None
         if w3d is not None and self.learned_fusion_weight:
             weight = normalised_fusion_weight(w3d[0, 0], valid)
-        self.map.fuse(view.depth[0, 0], view.image[0], self.odometry.K, torch.as_tensor(pose_rect, dtype=torch.float32),
+        colour = view.image[0]
+        if self.config.tracking.fuse_exposure == "normalised":
+            brightness = mean_brightness(view)
+            if self.exposure_level is None and brightness >= 8.0:     # (not a black frame)
+                self.exposure_level = brightness
+            gain = exposure_gain(brightness, self.exposure_level) if self.exposure_level else 1.0
+            if gain != 1.0:
+                colour = (colour * gain).clamp_(0.0, 1.0)
+        self.map.fuse(view.depth[0, 0], colour, self.odometry.K, torch.as_tensor(pose_rect, dtype=torch.float32),
                       frame_index=index, weight=weight, valid=valid)
         self._time("fusion", (time.perf_counter() - t0) * 1000.0)
 

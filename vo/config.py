@@ -14,6 +14,8 @@ class CorrespondenceConfig:
         dis_preset: DIS preset for the temporal flow: ``ultrafast`` | ``fast`` | ``medium``.
         dis_stereo_preset: DIS preset for the stereo parallax flow.
         dis_variational_refinement: run DIS's variational refinement (smoother, slower).
+        dis_match_exposure: brighten the darker image of each pair to the other's mean before
+            DIS (``vo.correspondence.dis.match_exposure``: exposure jumps between frames).
         raft_checkpoint: path to a RAFT checkpoint.
         raft_small: the checkpoint is RAFT-small.
         raft_iters: RAFT update iterations.
@@ -29,6 +31,7 @@ class CorrespondenceConfig:
     dis_preset: str = "medium"
     dis_stereo_preset: str = "medium"
     dis_variational_refinement: bool = True
+    dis_match_exposure: bool = True
     raft_checkpoint: str = ""
     raft_small: bool = False
     raft_iters: int = 12

@@ -20,6 +20,10 @@ class DataConfig:
         use_mask_files: combine the dataset's instrument masks (``masks/``) when present.
         specular_threshold: a pixel whose maximum channel intensity (0-1) reaches this is specular.
         specular_dilate_px: radius of the dilation applied to the specular mask.
+        dark_threshold: a pixel whose maximum channel intensity (0-1) is below this is too dark to
+            match (a few grey levels of signal: black borders, unlit depths, a frame the light
+            failed on) and invalid; 0 disables. A frame dark all over then fails to track (pose
+            carried over, nothing fused) instead of giving a wrong pose.
         fps: frame rate used for timestamps when the sequence has no ground truth.
     """
 
@@ -31,4 +35,5 @@ class DataConfig:
     use_mask_files: bool = True
     specular_threshold: float = 0.96
     specular_dilate_px: int = 3
+    dark_threshold: float = 0.04
     fps: float = 25.0

@@ -149,7 +149,8 @@ class StereoDataset:
         instrument = None
         if raw.instrument is not None and cfg.use_mask_files:
             instrument = proc.rectify_left_mask(raw.instrument, src)
-        mask = combine_masks(left, instrument, cfg.specular_threshold, cfg.specular_dilate_px, proc.valid_mask)
+        mask = combine_masks(left, instrument, cfg.specular_threshold, cfg.specular_dilate_px, proc.valid_mask,
+                             cfg.dark_threshold)
         depth = None
         if raw.depth is not None:
             depth = proc.rectify_left_nearest(np.asarray(raw.depth, dtype=np.float32), src)

@@ -1,9 +1,10 @@
-"""Validity masks: specular highlights and instrument masks.
+"""Validity masks: specular highlights, dark pixels and instrument masks.
 
-A frame's ``mask`` (True = valid tissue) is ``instrument_mask AND NOT specular_mask AND valid``,
-all at the output size: the instrument mask comes from the dataset's mask files (non-zero =
-tissue, 0 = instrument) when present and enabled, the specular mask is detected on the
-rectified, resized left image, and ``valid`` marks rectified pixels that map inside the raw image.
+A frame's ``mask`` (True = valid tissue) is ``instrument_mask AND NOT specular_mask AND NOT
+dark_mask AND valid``, all at the output size: the instrument mask comes from the dataset's mask
+files (non-zero = tissue, 0 = instrument) when present and enabled, the specular and dark masks
+are detected on the rectified, resized left image, and ``valid`` marks rectified pixels that map
+inside the raw image.
 """
 from __future__ import annotations
 
@@ -47,18 +48,30 @@ def specular_mask(rgb: np.ndarray, threshold: float, dilate_px: int) -> np.ndarr
     return spec
 
 
+def dark_mask(rgb: np.ndarray, threshold: float) -> np.ndarray:
+    """``(H, W)`` bool, True where the maximum channel intensity (scaled to 0-1, ``/ 255``) is below
+    ``threshold`` (0 = none): too little light for stereo or flow to match."""
+    rgb = np.asarray(rgb)
+    peak = rgb.max(axis=2) if rgb.ndim == 3 else rgb
+    return peak.astype(np.float32) < np.float32(threshold * 255.0)
+
+
 def combine_masks(
     left_rgb: np.ndarray,
     instrument: Optional[np.ndarray],
     threshold: float,
     dilate_px: int,
     valid: Optional[np.ndarray] = None,
+    dark_threshold: float = 0.0,
 ) -> np.ndarray:
-    """The frame mask: ``instrument AND NOT specular(left_rgb) AND valid`` (True = valid tissue).
+    """The frame mask: ``instrument AND NOT specular(left_rgb) AND NOT dark(left_rgb) AND valid``
+    (True = valid tissue).
 
     ``instrument`` (True = tissue) and ``valid`` may be None (all True); all at the image's size.
     """
     mask = ~specular_mask(left_rgb, threshold, dilate_px)
+    if dark_threshold > 0:
+        mask &= ~dark_mask(left_rgb, dark_threshold)
     if instrument is not None:
         mask &= np.asarray(instrument, dtype=bool)
     if valid is not None:

@@ -49,6 +49,8 @@ def validate_config(config: DataConfig) -> None:
             raise ConfigError(f"data.{key}: expected an integer >= 0 (0 = native size), got {value!r}")
     if not 0 < float(config.specular_threshold):
         raise ConfigError(f"data.specular_threshold: expected a value in (0, 1] (> 1 disables), got {config.specular_threshold}")
+    if not 0 <= float(config.dark_threshold) < 1:
+        raise ConfigError(f"data.dark_threshold: expected a value in [0, 1) (0 disables), got {config.dark_threshold}")
     if int(config.specular_dilate_px) < 0:
         raise ConfigError(f"data.specular_dilate_px: expected >= 0, got {config.specular_dilate_px}")
     if not float(config.fps) > 0:

@@ -9,8 +9,8 @@ from vo.correspondence.dis import DisFlow
 def make_flow_estimators(config: CorrespondenceConfig, device: str = "cpu") -> tuple[FlowEstimator, FlowEstimator]:
     """The temporal and the stereo flow estimators of ``config`` (they may be the same object)."""
     if config.backend == "dis":
-        return (DisFlow(config.dis_preset, config.dis_variational_refinement),
-                DisFlow(config.dis_stereo_preset, config.dis_variational_refinement))
+        return (DisFlow(config.dis_preset, config.dis_variational_refinement, config.dis_match_exposure),
+                DisFlow(config.dis_stereo_preset, config.dis_variational_refinement, config.dis_match_exposure))
     if config.backend == "raft":
         from vo.correspondence.raft_backend import RaftFlow
 

@@ -24,11 +24,13 @@ class DisFlow:
     Args:
         preset: ``ultrafast`` | ``fast`` | ``medium``.
         variational_refinement: keep DIS's variational refinement (False sets its iterations to 0).
+        exposure: match the two images' exposure first (:func:`match_exposure`).
     """
 
     name = "dis"
 
-    def __init__(self, preset: str = "medium", variational_refinement: bool = True):
+    def __init__(self, preset: str = "medium", variational_refinement: bool = True, exposure: bool = True):
+        self.exposure = exposure
         if preset not in _PRESETS:
             raise ValueError(f"unknown DIS preset '{preset}' (choose from {', '.join(_PRESETS)})")
         self.preset = preset
@@ -38,12 +40,33 @@ class DisFlow:
 
     def flow_gray(self, gray1: np.ndarray, gray2: np.ndarray) -> np.ndarray:
         """``(H, W)`` uint8 grey images -> ``(H, W, 2)`` float32 flow from ``gray1`` to ``gray2``."""
+        if self.exposure:
+            gray1, gray2 = match_exposure(gray1, gray2)
         return self._dis.calc(gray1, gray2, None)
 
-    def flow(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        """``(B, 3, H, W)`` float RGB in [0, 1] -> ``(B, 2, H, W)`` flow from ``image1`` to ``image2``."""
-        flows = [
-            torch.from_numpy(self.flow_gray(to_gray_u8(a), to_gray_u8(b))).permute(2, 0, 1)
-            for a, b in zip(image1, image2)
-        ]
-        return torch.stack(flows).to(image1.device)
+
+def match_exposure(gray1: np.ndarray, gray2: np.ndarray, tol: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """Scale the darker of two grey images so that both have the same mean (a global gain).
+
+    DIS matches patches by their mean-subtracted intensities and its variational refinement
+    assumes brightness constancy: an exposure jump between the two images (the endoscope's
+    automatic exposure, a flash, the light dimmed) is a gain it cannot absorb: with five frames
+    of a synthetic scanning sequence at a quarter of the exposure the frame2frame ATE was 0.96
+    mm against 0.38 matched (at a tenth: 5.1 against 0.47).  The darker image is brightened (no
+    clipping of the brighter one's highlights); means within ``tol`` of each other (consecutive
+    frames under the same exposure, the two views of a stereo pair, whose means differ by up to
+    3.5 % on synthetic sequences by what each view sees) are left as they are.
+
+    Args:
+        gray1, gray2: ``(H, W)`` uint8.
+
+    Returns:
+        The two images, one of them scaled (uint8, rounded and clipped at 255).
+    """
+    m1 = float(cv2.mean(gray1)[0]) + 0.5          # (+0.5: a black image has no gain)
+    m2 = float(cv2.mean(gray2)[0]) + 0.5
+    if m1 < m2 * (1.0 - tol):
+        gray1 = cv2.convertScaleAbs(gray1, alpha=m2 / m1)
+    elif m2 < m1 * (1.0 - tol):
+        gray2 = cv2.convertScaleAbs(gray2, alpha=m1 / m2)
+    return gray1, gray2
