@@ -503,22 +503,26 @@ def cull_chunks(box_lo, box_hi, R_cw, t_cw, near, far, xmin, xmax, ymin, ymax):
 
 
 @_inline_helper
+def _footprint_entry(b, Wp, ox, oy, t0, tx, ty, g, l0, l1, l2, q_max):
+    """At pixel offset ``(ox, oy)`` of a surfel (coefficients as :func:`splat_front`): the footprint
+    value ``t``, the quantised inverse depth clamped to ``[0, q_max]`` and the padded pixel."""
+    fx = np.float32(ox)
+    fy = np.float32(oy)
+    t = t0 + tx * fx + ty * fy + g * (fx * fx + fy * fy)
+    q = min(max(l0 + l1 * fx + l2 * fy, np.float32(0.0)), q_max)
+    return t, q, b + oy * Wp + ox
+
+
+@_inline_helper
 def _splat_front_entries(buf, Wp, b, h, i, t0, tx, ty, g, l0, l1, l2, st, q_max):
     """The ``(2 h + 1)^2`` entries of surfel ``i`` in :func:`splat_front` (inlined: called with a
     constant ``h`` the loops unroll, twice as fast on the common small footprints)."""
     zero = np.float32(0.0)
     for oy in range(-h, h + 1):
-        fy = np.float32(oy)
-        trow = t0 + ty * fy + g * fy * fy
-        qrow = l0 + l2 * fy
-        prow = b + oy * Wp
         for ox in range(-h, h + 1):
-            fx = np.float32(ox)
-            t = trow + tx * fx + g * fx * fx
-            q = min(max(qrow + l1 * fx, zero), q_max)
+            t, q, p = _footprint_entry(b, Wp, ox, oy, t0, tx, ty, g, l0, l1, l2, q_max)
             covered = (t > zero) | ((ox == 0) & (oy == 0))       # the centre pixel always
             key = ((np.int64(q + st) << 32) | i) * covered
-            p = prow + ox
             buf[p] = max(buf[p], key)
 
 
@@ -565,16 +569,10 @@ def _splat_blend_entries(acc, Wp, b, h, t0, tx, ty, g, l0, l1, l2, st, cq, k_pow
     tiny = np.float32(1e-6)
     q_max = np.float32((1 << 30) - 1)
     for oy in range(-h, h + 1):
-        fy = np.float32(oy)
-        trow = t0 + ty * fy + g * fy * fy
-        qrow = l0 + l2 * fy
-        prow = b + oy * Wp
         for ox in range(-h, h + 1):
-            fx = np.float32(ox)
-            t = max(trow + tx * fx + g * fx * fx, zero)
+            t, q, p = _footprint_entry(b, Wp, ox, oy, t0, tx, ty, g, l0, l1, l2, q_max)
+            t = max(t, zero)
             t = max(t, tiny) if (ox == 0) & (oy == 0) else t   # the centre pixel always
-            q = min(max(qrow + l1 * fx, zero), q_max)
-            p = prow + ox
             zv = (q + st) if t > zero else zero
             x = t * cq if zv > thr[p] else zero                 # in the front surface
             w = x
