@@ -9,8 +9,9 @@ in a few loops that keep the intermediates in registers:
   association, merging of redundant candidates, running averages and chunk-box growth;
 - :func:`measure`: the per-pixel points, normals and radii of a frame;
 - :func:`cull_chunks` and :func:`visible_surfels`: view culling and the visible set;
-- :func:`splat_front` and :func:`splat_blend`: the renderer's two splatting passes (circular
-  footprints; the exact-disc footprint stays in torch).
+- :func:`splat_coefficients`, :func:`splat_front` and :func:`splat_blend`: the renderer's
+  per-surfel coefficients and two splatting passes (circular footprints; the exact-disc
+  footprint stays in torch).
 
 They are selected by ``MapConfig.kernels`` (``auto``: for a map on the CPU when numba is
 installed); the tests check that both paths give the same results.  The splatting kernels owe
@@ -502,6 +503,70 @@ def cull_chunks(box_lo, box_hi, R_cw, t_cw, near, far, xmin, xmax, ymin, ymax):
 
 
 
+@_jit_simd
+def splat_coefficients(slots, p, u, v, normal, radius, conf, R_cw, fx, fy, cx, cy, f, q_scale, min_cos,
+                       splat_round, hmax, stable_conf, inv_k, pad, Wp,
+                       n_out, conf_out, coef, half, base, stab, root):
+    """The per-surfel quantities of :func:`mapping.render.splat` (circular footprints) in one loop.
+
+    Args:
+        slots ``(V,)`` int64, p ``(V, 3)`` camera-frame positions, u, v ``(V,)`` projected centres:
+            the visible set; normal ``(N, 3)``, radius, conf ``(N,)``: the store's arrays.
+        R_cw ``(3, 3)``; fx, fy, cx, cy, f: the camera; q_scale: quantised inverse depth per 1/mm;
+        min_cos (``render_min_cos``), splat_round, hmax (``splat_max_half``), stable_conf, inv_k
+        (``1 / k`` of the blending kernel); pad, Wp: the padded buffer.
+        Outputs ``(V,)`` unless said: n_out ``(V, 3)`` camera-frame normals, conf_out, coef ``(7,
+        V)`` (rows as :func:`splat_front`), half, base (int64), stab, root (the confidence
+        factor's k-th root).
+
+    Same formulas as the torch code of :func:`mapping.render.splat`.
+    """
+    one = np.float32(1.0)
+    two = np.float32(2.0)
+    zero = np.float32(0.0)
+    fx, fy, cx, cy, f = np.float32(fx), np.float32(fy), np.float32(cx), np.float32(cy), np.float32(f)
+    q_scale, min_cos, splat_round = np.float32(q_scale), np.float32(min_cos), np.float32(splat_round)
+    stable_conf, inv_k = np.float32(stable_conf), np.float32(inv_k)
+    for j in range(slots.shape[0]):
+        s = slots[j]
+        nx = R_cw[0, 0] * normal[s, 0] + R_cw[0, 1] * normal[s, 1] + R_cw[0, 2] * normal[s, 2]
+        ny = R_cw[1, 0] * normal[s, 0] + R_cw[1, 1] * normal[s, 1] + R_cw[1, 2] * normal[s, 2]
+        nz = R_cw[2, 0] * normal[s, 0] + R_cw[2, 1] * normal[s, 1] + R_cw[2, 2] * normal[s, 2]
+        n_out[j, 0] = nx
+        n_out[j, 1] = ny
+        n_out[j, 2] = nz
+        c = conf[s]
+        conf_out[j] = c
+        px = p[j, 0]
+        py = p[j, 1]
+        pz = p[j, 2]
+        uc = np.rint(u[j])
+        vc = np.rint(v[j])
+        rx0 = (uc - cx) / fx                               # centre pixel ray (rx0, ry0, 1)
+        ry0 = (vc - cy) / fy
+        den0 = nz + nx * rx0 + ny * ry0
+        ndp = nz * pz + nx * px + ny * py
+        cos_v = abs(den0) / np.sqrt(one + rx0 * rx0 + ry0 * ry0)
+        good = cos_v >= min_cos
+        scale = q_scale / ndp if good else zero
+        coef[4, j] = den0 * scale if good else q_scale / pz
+        coef[5, j] = nx * scale / fx
+        coef[6, j] = ny * scale / fy
+        r_fp = radius[s] * f / pz * np.sqrt(min(max(cos_v, min_cos), one))
+        du = u[j] - uc
+        dv = v[j] - vc
+        g = -one / (r_fp * r_fp)
+        coef[0, j] = one + g * (du * du + dv * dv)
+        coef[1, j] = -two * g * du
+        coef[2, j] = -two * g * dv
+        coef[3, j] = g
+        root[j] = one if c >= stable_conf else (max(c, np.float32(1e-4)) / stable_conf) ** inv_k
+        stab[j] = np.float32((1 << 30)) if c >= stable_conf else np.float32(0.0)
+        h = int(np.floor(r_fp + splat_round)) if good else 0
+        half[j] = min(max(h, 0), hmax)
+        base[j] = (np.int64(vc) + pad) * Wp + np.int64(uc) + pad
+
+
 @_inline_helper
 def _footprint_entry(b, Wp, ox, oy, t0, tx, ty, g, l0, l1, l2, q_max):
     """At pixel offset ``(ox, oy)`` of a surfel (coefficients as :func:`splat_front`): the footprint
@@ -575,9 +640,13 @@ def _splat_blend_entries(acc, Wp, b, h, t0, tx, ty, g, l0, l1, l2, st, cq, k_pow
             t = max(t, tiny) if (ox == 0) & (oy == 0) else t   # the centre pixel always
             zv = (q + st) if t > zero else zero
             x = t * cq if zv > thr[p] else zero                 # in the front surface
-            w = x
-            for _ in range(k_pow - 1):
-                w *= x
+            if k_pow == 4:                                      # the default: 15 % faster
+                x2 = x * x
+                w = x2 * x2
+            else:
+                w = x
+                for _ in range(k_pow - 1):
+                    w *= x
             acc[p, 0] += w
             acc[p, 1] += w * q
             acc[p, 2] += w * r
