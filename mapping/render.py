@@ -10,7 +10,8 @@ surfel`` (the front surface); pass 2 blends the colour and plane depth of the su
 surface with weights falling off with the distance from the pixel centre to each surfel's
 projected centre (``scatter_add``), so the view is sharp and sub-pixel exact (surface splatting).
 The index map used by the fusion is a super-sampled depth buffer z-tested with ``scatter_reduce``.
-On a CPU map the two splatting passes run compiled (:mod:`mapping.kernels`, same formulas).
+On a CPU map the per-surfel coefficients and the two splatting passes run compiled
+(:mod:`mapping.kernels`, same formulas).
 """
 from __future__ import annotations
 
@@ -324,6 +325,89 @@ def _coefficients_compiled(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg
     return n, conf, coef, half, base[None, :], stab[None, :], c4[None, :]
 
 
+def _coefficients_torch(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, q_scale: float,
+                        k_pow: int, pad: int, Wp: int) -> tuple:
+    """:func:`splat`'s per-surfel quantities (any device): ``n (V, 3), conf (V,), coef (ncoef, V),
+    monos, half (V,), base (1, V), stab (1, V), c4 (1, V)``; ``monos``: per block of ``coef``'s rows,
+    the monomials of the pixel offset they multiply."""
+    slots = vis.slots
+    hmax = int(cfg.splat_max_half)
+    n = cam.rot_to_cam(take(store.normal, slots))
+    r = take(store.radius, slots)
+    conf = take(store.conf, slots)
+    # per-surfel quantities as contiguous rows (structure of arrays)
+    px, py, pz = to_columns(vis.p)
+    nx, ny, nz = to_columns(n)
+    uc = torch.round(vis.u)
+    vc = torch.round(vis.v)
+    rx0 = (uc - cam.cx) / cam.fx                              # centre pixel ray (rx0, ry0, 1)
+    ry0 = (vc - cam.cy) / cam.fy
+    # inverse depth at pixel offset (ox, oy) = (n . ray) / (n . p), affine in (ox, oy); scaled to
+    # the z-buffer's 30-bit integer range right away (depth >= near / 4 fits)
+    den0 = torch.addcmul(torch.addcmul(nz, nx, rx0), ny, ry0)
+    ndp = torch.addcmul(torch.addcmul(nz * pz, nx, px), ny, py)
+    # |n . ray| / |ray| at the centre pixel; grazing surfels (small): centre pixel only, at the
+    # centre depth (ray-disc intersection is ill-conditioned there)
+    cos_v = den0.abs() * torch.rsqrt(torch.addcmul(torch.addcmul(torch.ones_like(rx0), rx0, rx0), ry0, ry0))
+    good = cos_v >= cfg.render_min_cos
+    scale = torch.where(good, q_scale / ndp, 0.0)
+    L0 = torch.where(good, den0 * scale, q_scale / pz)
+    L1 = nx * scale * (1.0 / cam.fx)
+    L2 = ny * scale * (1.0 / cam.fy)
+    r_px = r * cam.f / pz
+    if cfg.render_exact_discs:
+        R_fp = r_px
+    else:
+        # the disc's image is an ellipse of half-axes ~ r_px and r_px |cos|; the circle of equal
+        # area (the fusion enlarges oblique radii by 1 / |cos|: splatting that isotropically would
+        # smear oblique surfels over their neighbours)
+        R_fp = r_px * torch.sqrt(cos_v.clamp(cfg.render_min_cos, 1.0))
+    # t = 1 - d^2 / R^2 with d^2 = ox^2 + oy^2 - 2 du ox - 2 dv oy + du^2 + dv^2
+    du = vis.u - uc
+    dv = vis.v - vc
+    g = -1.0 / (R_fp * R_fp)
+    t0 = torch.addcmul(torch.ones_like(g), g, torch.addcmul(du * du, dv, dv))
+    rows = [t0, -2.0 * g * du, -2.0 * g * dv, g]
+    monos = [("1", "x", "y", "rr")]                           # block 0: t
+    rows += [L0, L1, L2]
+    monos.append(("1", "x", "y"))                             # block 1: inverse depth
+    if cfg.render_exact_discs:
+        # orthonormal tangent basis (e1, e2) of each disc (Duff et al. 2017, branchless)
+        sign = torch.where(nz >= 0, 1.0, -1.0)
+        a = -1.0 / (sign + nz)
+        b = nx * ny * a
+        e1 = (1.0 + sign * nx * nx * a, sign * b, -sign * nx)
+        e2 = (b, sign + ny * ny * a, -ny)
+
+        def plane_coef(e):
+            # in-plane coordinate of the ray/plane intersection times inverse depth, affine in
+            # (ox, oy): (ray . e) * i - (p . e) * i, with ray . e affine and i as above
+            ex, ey, ez = e
+            pe = torch.addcmul(torch.addcmul(ez * pz, ex, px), ey, py)
+            lin0 = torch.addcmul(torch.addcmul(ez, ex, rx0), ey, ry0)
+            return (q_scale * lin0 - pe * L0, (q_scale / cam.fx) * ex - pe * L1,
+                    (q_scale / cam.fy) * ey - pe * L2)
+
+        g1, g2 = plane_coef(e1), plane_coef(e2)
+        gr = (L0 * r, L1 * r, L2 * r)
+        # (r i)^2 - g1^2 - g2^2 >= 0: the 6 coefficients of the quadratic in (ox, oy)
+        for i, j, w in ((0, 0, 1.0), (0, 1, 2.0), (0, 2, 2.0), (1, 1, 1.0), (1, 2, 2.0), (2, 2, 1.0)):
+            c = torch.addcmul(torch.addcmul(-g1[i] * g1[j], g2[i], g2[j], value=-1.0), gr[i], gr[j])
+            if w != 1.0:
+                c = c * w
+            rows.append(torch.where(good, c, -1.0) if i == j == 0 else c * good)
+        monos.append(("1", "x", "y", "xx", "xy", "yy"))        # block 2: disc conic
+    coef = torch.stack(rows)                                  # (ncoef, V)
+    # blending weight (c^(1/k) t)^k: kernel exponent k ~ 1 / (2 sigma^2) (a bell of ~ sigma R) and
+    # the confidence factor c as its k-th root
+    c4 = (conf.clamp(1e-4, cfg.stable_confidence) * (1.0 / cfg.stable_confidence)).pow_(1.0 / k_pow)[None, :]
+    # stable surfels' z-buffer values are raised by 2^30 (above any quantised inverse depth)
+    stab = torch.where(conf >= cfg.stable_confidence, float(_Q_MAX + 1), 0.0)[None, :]
+
+    half = torch.where(good, torch.floor(R_fp + cfg.splat_round), 0.0).clamp(0, hmax).long()
+    base = ((vc.long() + pad) * Wp + (uc.long() + pad))[None, :]   # padded pixel of the centre
+    return n, conf, coef, monos, half, base, stab, c4
+
 def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colour: bool = True) -> ModelView:
     """Two-pass surface splatting of the visible surfels into a ``(H, W)`` view.
 
@@ -387,82 +471,9 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     if compiled:
         n, conf, coef, half, base, stab, c4 = _coefficients_compiled(store, vis, cam, cfg, q_scale, k_pow, pad, Wp)
     else:
-        n = cam.rot_to_cam(take(store.normal, slots))
-        r = take(store.radius, slots)
-        conf = take(store.conf, slots)
-        # per-surfel quantities as contiguous rows (structure of arrays)
-        px, py, pz = to_columns(vis.p)
-        nx, ny, nz = to_columns(n)
-        uc = torch.round(vis.u)
-        vc = torch.round(vis.v)
-        rx0 = (uc - cam.cx) / cam.fx                              # centre pixel ray (rx0, ry0, 1)
-        ry0 = (vc - cam.cy) / cam.fy
-        # inverse depth at pixel offset (ox, oy) = (n . ray) / (n . p), affine in (ox, oy); scaled to
-        # the z-buffer's 30-bit integer range right away (depth >= near / 4 fits)
-        den0 = torch.addcmul(torch.addcmul(nz, nx, rx0), ny, ry0)
-        ndp = torch.addcmul(torch.addcmul(nz * pz, nx, px), ny, py)
-        # |n . ray| / |ray| at the centre pixel; grazing surfels (small): centre pixel only, at the
-        # centre depth (ray-disc intersection is ill-conditioned there)
-        cos_v = den0.abs() * torch.rsqrt(torch.addcmul(torch.addcmul(torch.ones_like(rx0), rx0, rx0), ry0, ry0))
-        good = cos_v >= cfg.render_min_cos
-        scale = torch.where(good, q_scale / ndp, 0.0)
-        L0 = torch.where(good, den0 * scale, q_scale / pz)
-        L1 = nx * scale * (1.0 / cam.fx)
-        L2 = ny * scale * (1.0 / cam.fy)
-        r_px = r * cam.f / pz
-        if cfg.render_exact_discs:
-            R_fp = r_px
-        else:
-            # the disc's image is an ellipse of half-axes ~ r_px and r_px |cos|; the circle of equal
-            # area (the fusion enlarges oblique radii by 1 / |cos|: splatting that isotropically would
-            # smear oblique surfels over their neighbours)
-            R_fp = r_px * torch.sqrt(cos_v.clamp(cfg.render_min_cos, 1.0))
-        # t = 1 - d^2 / R^2 with d^2 = ox^2 + oy^2 - 2 du ox - 2 dv oy + du^2 + dv^2
-        du = vis.u - uc
-        dv = vis.v - vc
-        g = -1.0 / (R_fp * R_fp)
-        t0 = torch.addcmul(torch.ones_like(g), g, torch.addcmul(du * du, dv, dv))
-        rows = [t0, -2.0 * g * du, -2.0 * g * dv, g]
-        monos = [("1", "x", "y", "rr")]                           # block 0: t
-        rows += [L0, L1, L2]
-        monos.append(("1", "x", "y"))                             # block 1: inverse depth
-        if cfg.render_exact_discs:
-            # orthonormal tangent basis (e1, e2) of each disc (Duff et al. 2017, branchless)
-            sign = torch.where(nz >= 0, 1.0, -1.0)
-            a = -1.0 / (sign + nz)
-            b = nx * ny * a
-            e1 = (1.0 + sign * nx * nx * a, sign * b, -sign * nx)
-            e2 = (b, sign + ny * ny * a, -ny)
-
-            def plane_coef(e):
-                # in-plane coordinate of the ray/plane intersection times inverse depth, affine in
-                # (ox, oy): (ray . e) * i - (p . e) * i, with ray . e affine and i as above
-                ex, ey, ez = e
-                pe = torch.addcmul(torch.addcmul(ez * pz, ex, px), ey, py)
-                lin0 = torch.addcmul(torch.addcmul(ez, ex, rx0), ey, ry0)
-                return (q_scale * lin0 - pe * L0, (q_scale / cam.fx) * ex - pe * L1,
-                        (q_scale / cam.fy) * ey - pe * L2)
-
-            g1, g2 = plane_coef(e1), plane_coef(e2)
-            gr = (L0 * r, L1 * r, L2 * r)
-            # (r i)^2 - g1^2 - g2^2 >= 0: the 6 coefficients of the quadratic in (ox, oy)
-            for i, j, w in ((0, 0, 1.0), (0, 1, 2.0), (0, 2, 2.0), (1, 1, 1.0), (1, 2, 2.0), (2, 2, 1.0)):
-                c = torch.addcmul(torch.addcmul(-g1[i] * g1[j], g2[i], g2[j], value=-1.0), gr[i], gr[j])
-                if w != 1.0:
-                    c = c * w
-                rows.append(torch.where(good, c, -1.0) if i == j == 0 else c * good)
-            monos.append(("1", "x", "y", "xx", "xy", "yy"))        # block 2: disc conic
-        coef = torch.stack(rows)                                  # (ncoef, V)
+        n, conf, coef, monos, half, base, stab, c4 = _coefficients_torch(store, vis, cam, cfg, q_scale, k_pow, pad, Wp)
         ncoef = coef.shape[0]
         nblk = len(monos)
-        # blending weight (c^(1/k) t)^k: kernel exponent k ~ 1 / (2 sigma^2) (a bell of ~ sigma R) and
-        # the confidence factor c as its k-th root
-        c4 = (conf.clamp(1e-4, cfg.stable_confidence) * (1.0 / cfg.stable_confidence)).pow_(1.0 / k_pow)[None, :]
-        # stable surfels' z-buffer values are raised by 2^30 (above any quantised inverse depth)
-        stab = torch.where(conf >= cfg.stable_confidence, float(_Q_MAX + 1), 0.0)[None, :]
-
-        half = torch.where(good, torch.floor(R_fp + cfg.splat_round), 0.0).clamp(0, hmax).long()
-        base = ((vc.long() + pad) * Wp + (uc.long() + pad))[None, :]   # padded pixel of the centre
 
     def make_buckets(subset: torch.Tensor | None) -> list:
         """Per footprint-size bucket (a few, not a loop over surfels) of the surfels ``subset``
