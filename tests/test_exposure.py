@@ -6,6 +6,7 @@ import shutil
 
 import cv2
 import numpy as np
+import torch
 
 from slam.cli import main
 from slam.datasets.masks import combine_masks, dark_mask
@@ -33,6 +34,11 @@ def test_flow_across_an_exposure_jump():
         errors[exposure] = float(np.median(np.hypot(f[..., 0] - 2.3, f[..., 1] + 1.4)[inner]))
     assert errors[True] < 0.05
     assert errors[False] > 4 * errors[True]
+    # the FlowEstimator interface (RGB tensors) gives the same flow as the grey images
+    rgb = lambda g: torch.from_numpy(np.repeat(g[None], 3, 0).astype(np.float32) / 255.0)[None]
+    f = DisFlow("medium").flow(rgb(a), rgb(dark))
+    assert f.shape == (1, 2, 128, 160)
+    assert float(np.median(np.hypot(f[0, 0].numpy() - 2.3, f[0, 1].numpy() + 1.4)[inner])) < 0.05
     # images of the same exposure are left alone; the darker image of a pair is brightened
     same_a, same_b = match_exposure(a, b)
     assert same_a is a and same_b is b

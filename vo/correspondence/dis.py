@@ -44,6 +44,14 @@ class DisFlow:
             gray1, gray2 = match_exposure(gray1, gray2)
         return self._dis.calc(gray1, gray2, None)
 
+    def flow(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
+        """``(B, 3, H, W)`` float RGB in [0, 1] -> ``(B, 2, H, W)`` flow from ``image1`` to ``image2``."""
+        flows = [
+            torch.from_numpy(self.flow_gray(to_gray_u8(a), to_gray_u8(b))).permute(2, 0, 1)
+            for a, b in zip(image1, image2)
+        ]
+        return torch.stack(flows).to(image1.device)
+
 
 def match_exposure(gray1: np.ndarray, gray2: np.ndarray, tol: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
     """Scale the darker of two grey images so that both have the same mean (a global gain).
