@@ -461,7 +461,6 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
     # the z-buffer's 30-bit integer range holds inverse depth scaled so that depth >= near / 4 fits
     q_scale = float(_Q_MAX) * cfg.near_mm * 0.25
     k_pow = _kernel_power(cfg.render_blend_sigma)
-    ids = torch.arange(V, device=dev)[None, :]
     pad = 2 * hmax + 2                                        # a centre may lie hmax px outside
     Wp = W + 2 * pad
     Hp = H + 2 * pad
@@ -474,11 +473,14 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
         n, conf, coef, monos, half, base, stab, c4 = _coefficients_torch(store, vis, cam, cfg, q_scale, k_pow, pad, Wp)
         ncoef = coef.shape[0]
         nblk = len(monos)
+        ids = torch.arange(V, device=dev)[None, :]              # surfel ids of the z-buffer keys
 
     def make_buckets(subset: torch.Tensor | None) -> list:
         """Per footprint-size bucket (a few, not a loop over surfels) of the surfels ``subset``
         (indices into the visible set; None = all): their coefficients and the monomials of the
-        offsets."""
+        offsets.  The compiled passes take the surfel list as it is (one "bucket")."""
+        if compiled:
+            return [torch.arange(V) if subset is None else subset]
         hs = half if subset is None else half.index_select(0, subset)
         counts = torch.bincount(hs, minlength=hmax + 1).tolist()
         out = []
@@ -555,9 +557,6 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
         per_surfel = (base[0].contiguous().numpy(), half.contiguous().numpy(), coef.contiguous().numpy(),
                       stab[0].contiguous().numpy())
 
-        def make_buckets(subset: torch.Tensor | None) -> list:  # noqa: F811
-            return [torch.arange(V) if subset is None else subset]
-
     stable = stab[0] > 0                                      # (stab: the stable surfels' key offset)
     n_stable = int(stable.sum())
     if cfg.render_cull_hidden_unstable and 0 < n_stable < V:
@@ -599,9 +598,9 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
         if compiled:
             sums = torch.zeros(Hp * Wp, 5)                  # w, w q, w rgb per pixel, interleaved
             cols = (colors if colors is not None else torch.zeros(3, V)).contiguous().numpy()
+            root, thr_np = c4[0].contiguous().numpy(), thr.contiguous().numpy()
             for order in buckets:
-                kernels.splat_blend(sums.numpy(), Wp, order.numpy(), *per_surfel, c4[0].contiguous().numpy(),
-                                    k_pow, thr.contiguous().numpy(), cols)
+                kernels.splat_blend(sums.numpy(), Wp, order.numpy(), *per_surfel, root, k_pow, thr_np, cols)
             keep = [0] + ([1] if blend_depth else []) + ([2, 3, 4] if with_colour else [])
             return torch.stack([sums[:, c] for c in keep])
         for b in buckets:
