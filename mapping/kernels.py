@@ -502,7 +502,6 @@ def cull_chunks(box_lo, box_hi, R_cw, t_cw, near, far, xmin, xmax, ymin, ymax):
     return out[:k]
 
 
-
 @_jit_simd
 def splat_coefficients(slots, p, u, v, normal, radius, conf, R_cw, fx, fy, cx, cy, f, q_scale, min_cos,
                        splat_round, hmax, stable_conf, inv_k, pad, Wp,
@@ -519,7 +518,7 @@ def splat_coefficients(slots, p, u, v, normal, radius, conf, R_cw, fx, fy, cx, c
         V)`` (rows as :func:`splat_front`), half, base (int64), stab, root (the confidence
         factor's k-th root).
 
-    Same formulas as the torch code of :func:`mapping.render.splat`.
+    Same formulas as :func:`mapping.render._coefficients_torch`.
     """
     one = np.float32(1.0)
     two = np.float32(2.0)

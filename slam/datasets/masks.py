@@ -14,6 +14,15 @@ import cv2
 import numpy as np
 
 
+def _peak(rgb: np.ndarray) -> np.ndarray:
+    """``(H, W)`` maximum channel intensity of an ``(H, W, 3)`` (or grey ``(H, W)``) image."""
+    if rgb.ndim == 3:
+        return rgb.max(axis=2)
+    if rgb.ndim == 2:
+        return rgb
+    raise ValueError(f"expected an (H, W, 3) image, got shape {rgb.shape}")
+
+
 def specular_mask(rgb: np.ndarray, threshold: float, dilate_px: int) -> np.ndarray:
     """Specular highlights by maximum-intensity detection.
 
@@ -30,12 +39,7 @@ def specular_mask(rgb: np.ndarray, threshold: float, dilate_px: int) -> np.ndarr
         ``(H, W)`` bool, True = specular.
     """
     rgb = np.asarray(rgb)
-    if rgb.ndim == 3:
-        peak = rgb.max(axis=2)
-    elif rgb.ndim == 2:
-        peak = rgb
-    else:
-        raise ValueError(f"expected an (H, W, 3) image, got shape {rgb.shape}")
+    peak = _peak(rgb)
     if rgb.dtype == np.uint8:
         cut = int(np.ceil(threshold * 255.0 - 1e-9))
         spec = peak >= cut if cut <= 255 else np.zeros(peak.shape, dtype=bool)
@@ -51,9 +55,7 @@ def specular_mask(rgb: np.ndarray, threshold: float, dilate_px: int) -> np.ndarr
 def dark_mask(rgb: np.ndarray, threshold: float) -> np.ndarray:
     """``(H, W)`` bool, True where the maximum channel intensity (scaled to 0-1, ``/ 255``) is below
     ``threshold`` (0 = none): too little light for stereo or flow to match."""
-    rgb = np.asarray(rgb)
-    peak = rgb.max(axis=2) if rgb.ndim == 3 else rgb
-    return peak.astype(np.float32) < np.float32(threshold * 255.0)
+    return _peak(np.asarray(rgb)).astype(np.float32) < np.float32(threshold * 255.0)
 
 
 def combine_masks(
