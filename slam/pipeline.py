@@ -155,6 +155,7 @@ class Pipeline:
         self.timings: dict[str, list[float]] = {}
         self.fallbacks = 0
         self.exposure_level: Optional[float] = None     # the map's exposure: the first fused frame's
+        self.velocity = np.eye(4)   # the last tracked relative motion: solver.init=constant_velocity's start
 
     # --------------------------------------------------------------------------------------
     def _initial_rect_pose(self) -> np.ndarray:
@@ -282,7 +283,9 @@ class Pipeline:
             self._log(k, frame, view, None, pose_rect, rec)
             return rec, pose_rect, view
         ref, flow_ref, kind = self._reference(last_view, pose_rect)
-        track = self.odometry.track(view, ref, flow_ref, chain_gain=self.chain_gain if kind == "model" else 0.0)
+        T_init = self.velocity if self.config.solver.init == "constant_velocity" else None
+        track = self.odometry.track(view, ref, flow_ref, T_init=T_init,
+                                    chain_gain=self.chain_gain if kind == "model" else 0.0)
         for stage, ms in track.timings_ms.items():
             self._time(stage, ms)
         if track.failed:
@@ -290,6 +293,7 @@ class Pipeline:
             self._log(k, frame, view, track, pose_rect, rec)
             return rec, pose_rect, last_view
         new_pose = pose_rect @ track.relative
+        self.velocity = track.relative
         rec = FrameRecord(index, stamp, new_pose @ self.R1, False, "", kind, track.iterations, track.cost)
         self._fuse(view, track.w3d, new_pose, index)
         self._log(k, frame, view, track, new_pose, rec)

@@ -19,8 +19,12 @@ class CorrespondenceConfig:
         raft_checkpoint: path to a RAFT checkpoint.
         raft_small: the checkpoint is RAFT-small.
         raft_iters: RAFT update iterations.
-        lr_check_px: left-right stereo consistency threshold (pixels); 0 disables the check
-            (it costs a second stereo flow).
+        lr_check_px: left-right stereo consistency threshold (pixels): a pixel whose stereo
+            flow, followed there and back (left -> right -> left), misses itself by more is
+            invalid (occluded in the right view or mismatched); 0 disables the check. It costs a
+            second stereo flow (about 15 ms at 320x256 with DIS) and keeps those depths out of
+            the residuals and the map: frame2model ATE -13 % and frame2frame -5 % on the synthetic
+            rigid and loop sequences, the learned 2D&3D macro ATE -5 % (README, "Left-right check").
         fb_check_px: forward-backward temporal flow consistency threshold (pixels); 0 disables it
             (it costs a second temporal flow).
         max_vertical_parallax_px: pixels whose stereo flow has a larger vertical part are invalid
@@ -35,7 +39,7 @@ class CorrespondenceConfig:
     raft_checkpoint: str = ""
     raft_small: bool = False
     raft_iters: int = 12
-    lr_check_px: float = 0.0
+    lr_check_px: float = 1.0
     fb_check_px: float = 0.0
     max_vertical_parallax_px: float = 2.0
 
