@@ -189,6 +189,29 @@ class Pipeline:
                                              background=last_view)
         return ref, (last_view if self.flow_against_last_frame else None), "model"
 
+    def _refine(self, view: View, pose_rect: np.ndarray, track) -> tuple[np.ndarray, object]:
+        """``tracking.refine_passes`` x: track ``view`` against the model rendered at its
+        estimated ``pose_rect`` and compose the correction. Returns the pose and the last
+        successful tracking result (its weight maps weigh the fusion)."""
+        for _ in range(self.config.tracking.refine_passes):
+            t0 = time.perf_counter()
+            mv = self.map.render(self.odometry.K, torch.as_tensor(pose_rect, dtype=torch.float32),
+                                 self.camera.height, self.camera.width)
+            self._time("render", (time.perf_counter() - t0) * 1000.0)
+            if model_coverage(mv.valid, view.valid[0, 0]) < self.config.tracking.min_model_coverage:
+                break
+            # the current frame fills the few uncovered pixels (no residual there: it sits at the
+            # true pose, the render at the estimate) and gives the render its shading
+            ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=view,
+                                                 background_matchable=False)
+            refined = self.odometry.track(view, ref)
+            for stage, ms in refined.timings_ms.items():
+                self._time(stage, ms)
+            if refined.failed:
+                break
+            pose_rect, track = pose_rect @ refined.relative, refined
+        return pose_rect, track
+
     def _fuse(self, view: View, w3d: Optional[torch.Tensor], pose_rect: np.ndarray, index: int) -> None:
         """Fuse ``view`` at ``pose_rect``, weighted by its ``(1, 1, H, W)`` learned ``w3d`` if given."""
         if self.map is None:
@@ -293,7 +316,9 @@ class Pipeline:
             self._log(k, frame, view, track, pose_rect, rec)
             return rec, pose_rect, last_view
         new_pose = pose_rect @ track.relative
-        self.velocity = track.relative
+        if kind == "model":
+            new_pose, track = self._refine(view, new_pose, track)
+        self.velocity = np.linalg.inv(pose_rect) @ new_pose
         rec = FrameRecord(index, stamp, new_pose @ self.R1, False, "", kind, track.iterations, track.cost)
         self._fuse(view, track.w3d, new_pose, index)
         self._log(k, frame, view, track, new_pose, rec)

@@ -46,6 +46,9 @@ class View:
         depth: ``(1, 1, H, W)`` depth in mm, 0 where invalid.
         valid: ``(1, 1, H, W)`` bool pixels with a valid depth and not masked.
         parallax: ``(1, 2, H, W)`` stereo parallax flow left -> right (pixels).
+        matchable: ``(1, 1, H, W)`` bool, the pixels a correspondence may land on, or None (all).
+            A rendered view whose uncovered pixels were filled from a view at another pose
+            marks only its covered pixels (those fill pixels give no residual).
     """
 
     image: torch.Tensor
@@ -53,6 +56,7 @@ class View:
     depth: torch.Tensor
     valid: torch.Tensor
     parallax: torch.Tensor
+    matchable: torch.Tensor | None = None
 
 
 @dataclass
@@ -169,7 +173,7 @@ class StereoOdometry:
         return View(image=img_l, gray=gray_l, depth=depth, valid=valid, parallax=parallax)
 
     def view_from_render(self, color: torch.Tensor | None, depth: torch.Tensor, valid: torch.Tensor,
-                         background: View | None = None) -> View:
+                         background: View | None = None, background_matchable: bool = True) -> View:
         """A reference view from a rendered model view.
 
         Args:
@@ -180,6 +184,9 @@ class StereoOdometry:
             background: a real view at the same pose (the last frame) whose colour fills the
                 pixels the model does not cover, so that the flow has no artificial edge there
                 (those pixels get 2D residuals only: the reference depth comes from the model).
+            background_matchable: False when the background sits at another pose than the
+                render (the current frame filling a render at its own estimated pose): the
+                filled pixels are then not :attr:`View.matchable`.
         """
         dcfg = self.config.depth
         depth = depth[None, None].to(self.device).float()
@@ -196,7 +203,8 @@ class StereoOdometry:
                 image = torch.where(covered, relight(image, background.image, covered), background.image)
             gray = to_gray_u8(image[0])
         return View(image=image, gray=gray, depth=depth, valid=valid,
-                    parallax=parallax_from_depth(depth, self.camera.depth_from_disparity_scale()))
+                    parallax=parallax_from_depth(depth, self.camera.depth_from_disparity_scale()),
+                    matchable=None if background is None or background_matchable else covered)
 
     # ---------------------------------------------------------------- tracking
     def _weights(self, cur: View, ref: View, flow: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -221,6 +229,8 @@ class StereoOdometry:
         valid = cur.valid & lands_inside(flow)
         if flow_valid is not None:
             valid &= flow_valid
+        if ref.matchable is not None:
+            valid &= sample_valid_by_flow(ref.matchable, flow)
         valid3 = valid & sample_valid_by_flow(ref.valid, flow)
         points_ref = sample_by_flow(backproject(ref.depth / dmax, self.K), flow)
         return target, valid, valid3, points_ref
