@@ -22,7 +22,7 @@ from slam.config import SlamConfig, save_config
 from slam.errors import DataError, SlamError
 from slam.prefetch import Prefetcher
 from slam.tum import TumStreamWriter
-from vo.odometry import StereoOdometry, View
+from vo.odometry import StereoOdometry, TrackResult, View
 
 log = logging.getLogger("slam")
 
@@ -189,7 +189,7 @@ class Pipeline:
                                              background=last_view)
         return ref, (last_view if self.flow_against_last_frame else None), "model"
 
-    def _refine(self, view: View, pose_rect: np.ndarray, track) -> tuple[np.ndarray, object]:
+    def _refine(self, view: View, pose_rect: np.ndarray, track: TrackResult) -> tuple[np.ndarray, TrackResult]:
         """``tracking.refine_passes`` x: track ``view`` against the model rendered at its
         estimated ``pose_rect`` and compose the correction. Returns the pose and the last
         successful tracking result (its weight maps weigh the fusion)."""
