@@ -195,11 +195,14 @@ class Pipeline:
         successful tracking result (its weight maps weigh the fusion)."""
         for _ in range(self.config.tracking.refine_passes):
             t0 = time.perf_counter()
+            # depth first, as in _reference: the colour's blending pass only for a view that is used
             mv = self.map.render(self.odometry.K, torch.as_tensor(pose_rect, dtype=torch.float32),
-                                 self.camera.height, self.camera.width)
-            self._time("render", (time.perf_counter() - t0) * 1000.0)
+                                 self.camera.height, self.camera.width, colour=False)
             if model_coverage(mv.valid, view.valid[0, 0]) < self.config.tracking.min_model_coverage:
+                self._time("render", (time.perf_counter() - t0) * 1000.0)
                 break
+            mv.with_colour()
+            self._time("render", (time.perf_counter() - t0) * 1000.0)
             # the current frame fills the few uncovered pixels (no residual there: it sits at the
             # true pose, the render at the estimate) and gives the render its shading
             ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=view,
