@@ -148,3 +148,77 @@ def test_frame2model_beats_frame2frame_on_rigid(synth_dir, tmp_path):
     # a second pass against the model rendered at the first estimate (the view nearly at the
     # frame's pose): 0.69x the one-pass ATE on this sequence at 150 frames, 0.81x on average
     assert ate["f2m_refined"] < 0.9 * ate["f2m_rendered"], ate
+
+
+def test_relight_gain_ignores_the_backgrounds_masked_pixels(synth_dir):
+    """A highlight of the last frame (masked, never fused) must not brighten the model view
+    around it: the relighting gain is taken over pixels valid in both."""
+    from slam.config import load_config
+    from slam.datasets import open_dataset
+    from vo.odometry import StereoOdometry, View
+
+    data = synth_dir("rigid", 3, (160, 128))
+    cfg = load_config(None, ["weights.mode=constant"])
+    ds = open_dataset(data, cfg.data)
+    odo = StereoOdometry(ds.camera, cfg.vo())
+    fr = ds.frame(0)
+    frame = odo.make_view(fr.left, fr.right, fr.mask)
+    H, W = 128, 160
+    blob = torch.zeros(1, 1, H, W, dtype=torch.bool)
+    blob[..., 50:70, 60:90] = True
+    image = torch.where(blob, torch.ones_like(frame.image), frame.image)     # a saturated highlight
+    lit = View(image=image, gray=frame.gray, depth=frame.depth, valid=frame.valid & ~blob,
+               parallax=frame.parallax, masked=blob[0, 0].numpy())
+    colour = frame.image[0]                                                  # the model: no highlight
+    depth = torch.full((H, W), 60.0)
+    covered = torch.ones(H, W, dtype=torch.bool)
+    ref = odo.view_from_render(colour, depth, covered, background=lit)
+    ring = torch.zeros(H, W, dtype=torch.bool)
+    ring[40:80, 50:100] = True
+    ring[50:70, 60:90] = False
+    change = (ref.image[0] - colour).abs().mean(0)
+    assert change[ring].mean() < 0.01, f"{change[ring].mean():.4f}"
+    assert ref.rendered and not frame.rendered
+    # taking the gain over the highlight too (the old behaviour) brightens the ring
+    from vo.odometry import relight
+    old = relight(colour[None], image, covered[None, None])
+    assert (old[0] - colour).abs().mean(0)[ring].mean() > 0.03
+
+
+def test_masked_pixels_are_inpainted_for_the_flow_against_a_model_view(synth_dir):
+    """A highlight fixed in the image while the tissue moves drags the flow of the patches around
+    it against a model view that has none; inpainting the frame's masked pixels first keeps
+    the flow of its surroundings on the tissue's motion. Against a real frame nothing changes."""
+    from slam.config import load_config
+    from slam.datasets import open_dataset
+    from vo.odometry import StereoOdometry, View
+
+    data = synth_dir("rigid", 3, (160, 128))
+    ds = open_dataset(data)
+    fr = ds.frame(0)
+    H, W = 128, 160
+    shift = 3                                                       # the tissue moves 3 px left
+    ref_rgb = np.ascontiguousarray(fr.left)
+    cur_rgb = np.ascontiguousarray(np.roll(fr.left, -shift, axis=1))
+    blob = np.zeros((H, W), bool)
+    yy, xx = np.mgrid[0:H, 0:W]
+    for cy, cx, r in ((60, 70, 7), (50, 95, 5), (75, 85, 6)):
+        blob |= (yy - cy) ** 2 + (xx - cx) ** 2 <= r * r
+    cur_rgb[blob] = 255                                             # highlights, still in the image
+    errors = {}
+    for radius in (0.0, 3.0):
+        cfg = load_config(None, ["weights.mode=constant", f"correspondence.inpaint_masked_px={radius}"])
+        odo = StereoOdometry(ds.camera, cfg.vo())
+        cur = odo.make_view(cur_rgb, cur_rgb, ~blob, gt_depth=np.full((H, W), 60.0))
+        ref_real = odo.make_view(ref_rgb, ref_rgb, None, gt_depth=np.full((H, W), 60.0))
+        ref = odo.view_from_render(ref_real.image[0], ref_real.depth[0, 0], torch.ones(H, W, dtype=torch.bool))
+        assert np.array_equal(cur.masked, blob)
+        flow, _ = odo._correspondences(cur, ref, None, 0.0)
+        near = torch.from_numpy(~blob & (np.abs(yy - 62) < 25) & (np.abs(xx - 82) < 30))
+        errors[radius] = float((flow[0, 0] - shift).abs()[near].mean())
+        if radius > 0:      # a real reference: the frame's own pixels, as before
+            flow_real, _ = odo._correspondences(cur, ref_real, None, 0.0)
+            cfg0 = load_config(None, ["weights.mode=constant", "correspondence.inpaint_masked_px=0"])
+            flow_plain, _ = StereoOdometry(ds.camera, cfg0.vo())._correspondences(cur, ref_real, None, 0.0)
+            assert torch.equal(flow_real, flow_plain)
+    assert errors[3.0] < 0.5 * errors[0.0], errors

@@ -29,6 +29,10 @@ class CorrespondenceConfig:
             (it costs a second temporal flow).
         max_vertical_parallax_px: pixels whose stereo flow has a larger vertical part are invalid
             (rectified views have none); 0 disables the check.
+        inpaint_masked_px: when the temporal flow runs against a model view (frame2model), the
+            frame's masked pixels (specular highlights, instruments: never fused, so the model
+            shows tissue there) are first inpainted from their surroundings with this radius
+            (OpenCV Telea); 0 disables it. Left in, their edges pull the flow around them.
     """
 
     backend: str = "dis"
@@ -42,6 +46,7 @@ class CorrespondenceConfig:
     lr_check_px: float = 1.0
     fb_check_px: float = 0.0
     max_vertical_parallax_px: float = 2.0
+    inpaint_masked_px: float = 3.0
 
 
 @dataclass

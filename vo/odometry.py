@@ -49,6 +49,9 @@ class View:
         matchable: ``(1, 1, H, W)`` bool, the pixels a correspondence may land on, or None (all).
             A rendered view whose uncovered pixels were filled from a view at another pose
             marks only its covered pixels (those fill pixels give no residual).
+        masked: ``(H, W)`` bool numpy, the pixels the frame's mask excludes (specular
+            highlights, instruments, dark corners), or None (no mask given).
+        rendered: the view is a model view (it shows no highlights or instruments).
     """
 
     image: torch.Tensor
@@ -57,6 +60,8 @@ class View:
     valid: torch.Tensor
     parallax: torch.Tensor
     matchable: torch.Tensor | None = None
+    masked: np.ndarray | None = None
+    rendered: bool = False
 
 
 @dataclass
@@ -170,7 +175,9 @@ class StereoOdometry:
             depth = torch.where(valid, depth, torch.zeros_like(depth))
         if timings is not None:
             timings["stereo"] = (time.perf_counter() - t0) * 1000.0
-        return View(image=img_l, gray=gray_l, depth=depth, valid=valid, parallax=parallax)
+        masked = None if mask is None else ~np.asarray(mask, dtype=bool)
+        return View(image=img_l, gray=gray_l, depth=depth, valid=valid, parallax=parallax,
+                    masked=masked if masked is not None and masked.any() else None)
 
     def view_from_render(self, color: torch.Tensor | None, depth: torch.Tensor, valid: torch.Tensor,
                          background: View | None = None, background_matchable: bool = True) -> View:
@@ -200,11 +207,12 @@ class StereoOdometry:
         else:
             image = color[None].to(self.device).float().clamp(0, 1)
             if background is not None:
-                image = torch.where(covered, relight(image, background.image, covered), background.image)
+                image = torch.where(covered, relight(image, background.image, covered & background.valid), background.image)
             gray = to_gray_u8(image[0])
         return View(image=image, gray=gray, depth=depth, valid=valid,
                     parallax=parallax_from_depth(depth, self.camera.depth_from_disparity_scale()),
-                    matchable=None if background is None or background_matchable else covered)
+                    matchable=None if background is None or background_matchable else covered,
+                    rendered=True)
 
     # ---------------------------------------------------------------- tracking
     def _weights(self, cur: View, ref: View, flow: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -308,19 +316,31 @@ class StereoOdometry:
                            cost=float("nan") if result is None else float(result.cost[0]),
                            valid_pixels=n_valid, flow=flow, w2d=w2d, w3d=w3d, timings_ms=timings)
 
+    def _flow_input(self, view: View, against: View) -> tuple[torch.Tensor, np.ndarray]:
+        """``view``'s image and grey image for a temporal flow to ``against``: a real frame's
+        masked pixels inpainted when ``against`` is a model view
+        (``correspondence.inpaint_masked_px``), else as they are."""
+        radius = self.config.correspondence.inpaint_masked_px
+        if not against.rendered or view.rendered or view.masked is None or radius <= 0:
+            return view.image, view.gray
+        return inpaint_masked(view.image, view.gray, view.masked, radius,
+                              need_image=not isinstance(self.temporal_flow, DisFlow))
+
     def _correspondences(self, cur: View, ref: View, flow_ref: View | None,
                          chain_gain: float) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The temporal flow ``cur -> ref`` (through ``flow_ref``, see :meth:`track`) and the
         ``(1, 1, H, W)`` bool mask of flows that passed the checks (None: no check ran)."""
         chain = chain_gain > 0 and flow_ref is not None and flow_ref is not ref
         flow_ref = flow_ref or ref
-        flow = self._flow(self.temporal_flow, cur.image, cur.gray, flow_ref.image, flow_ref.gray)
+        cur_img, cur_gray = self._flow_input(cur, against=flow_ref)
+        flow = self._flow(self.temporal_flow, cur_img, cur_gray, flow_ref.image, flow_ref.gray)
         fb_ok = None
         if self.config.correspondence.fb_check_px > 0:
-            back = self._flow(self.temporal_flow, flow_ref.image, flow_ref.gray, cur.image, cur.gray)
+            back = self._flow(self.temporal_flow, flow_ref.image, flow_ref.gray, cur_img, cur_gray)
             fb_ok = flow_consistency(flow, back, self.config.correspondence.fb_check_px)
         if chain:
-            to_ref = self._flow(self.temporal_flow, flow_ref.image, flow_ref.gray, ref.image, ref.gray)
+            last_img, last_gray = self._flow_input(flow_ref, against=ref)
+            to_ref = self._flow(self.temporal_flow, last_img, last_gray, ref.image, ref.gray)
             # a pose offset moves a smooth surface smoothly: keep the field's low frequencies only
             # (the render's blur and shading make the per-pixel flow noisy)
             to_ref = masked_blur(to_ref, ref.valid & flow_ref.valid, 0.05) * chain_gain
@@ -361,6 +381,33 @@ class StereoOdometry:
             self.previous_relative = result.relative
             self.reference = view
         return result
+
+
+def inpaint_masked(image: torch.Tensor, gray: np.ndarray, masked: np.ndarray, radius: float,
+                   need_image: bool = True) -> tuple[torch.Tensor, np.ndarray]:
+    """Fill the ``masked`` pixels of a real frame from their surroundings (OpenCV Telea).
+
+    A model view shows the tissue without the frame's specular highlights and instruments (they
+    are never fused); left in the frame, their edges pull the flow of every patch that overlaps
+    them towards their own motion (a highlight rides with the light, on the endoscope).
+
+    Args:
+        image: ``(1, 3, H, W)`` RGB in [0, 1]; gray: ``(H, W)`` uint8; masked: ``(H, W)`` bool.
+        radius: inpainting radius (pixels).
+        need_image: also inpaint ``image`` (flow backends that read the colour); else it is
+            returned as it is.
+    Returns:
+        ``(image, gray)`` with the masked pixels filled.
+    """
+    import cv2
+
+    mask_u8 = masked.astype(np.uint8)
+    gray = cv2.inpaint(gray, mask_u8, float(radius), cv2.INPAINT_TELEA)
+    if need_image:
+        rgb = (image[0].permute(1, 2, 0).clamp(0, 1) * 255.0).round().to(torch.uint8).cpu().numpy()
+        rgb = cv2.inpaint(np.ascontiguousarray(rgb), mask_u8, float(radius), cv2.INPAINT_TELEA)
+        image = torch.from_numpy(rgb).to(image.device).permute(2, 0, 1)[None].float().div_(255.0)
+    return image, gray
 
 
 def relight(image: torch.Tensor, target: torch.Tensor, covered: torch.Tensor, sigma_frac: float = 0.03) -> torch.Tensor:
