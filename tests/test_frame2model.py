@@ -90,10 +90,8 @@ def test_relight_gives_the_render_the_target_shading_without_moving_edges():
     assert c > 0.9
 
 
-def test_fill_from_another_pose_gives_no_residuals(synth_dir):
-    """A render filled with the current frame (refinement pass) marks only its covered pixels
-    matchable: flows landing on the fill get no residual; filled from the last frame (at the
-    render's pose) they keep their 2D residual."""
+def _odometry_and_first_view(synth_dir):
+    """A constant-weight VO on a 160x128 rigid sequence and the view of its first frame."""
     from slam.config import load_config
     from slam.datasets import open_dataset
     from vo.odometry import StereoOdometry
@@ -103,7 +101,14 @@ def test_fill_from_another_pose_gives_no_residuals(synth_dir):
     ds = open_dataset(data, cfg.data)
     odo = StereoOdometry(ds.camera, cfg.vo())
     fr = ds.frame(0)
-    frame = odo.make_view(fr.left, fr.right, fr.mask)
+    return odo, odo.make_view(fr.left, fr.right, fr.mask)
+
+
+def test_fill_from_another_pose_gives_no_residuals(synth_dir):
+    """A render filled with the current frame (refinement pass) marks only its covered pixels
+    matchable: flows landing on the fill get no residual; filled from the last frame (at the
+    render's pose) they keep their 2D residual."""
+    odo, frame = _odometry_and_first_view(synth_dir)
     H, W = 128, 160
     covered = torch.ones(H, W, dtype=torch.bool)
     covered[40:80, 50:100] = False
@@ -153,16 +158,9 @@ def test_frame2model_beats_frame2frame_on_rigid(synth_dir, tmp_path):
 def test_relight_gain_ignores_the_backgrounds_masked_pixels(synth_dir):
     """A highlight of the last frame (masked, never fused) must not brighten the model view
     around it: the relighting gain is taken over pixels valid in both."""
-    from slam.config import load_config
-    from slam.datasets import open_dataset
-    from vo.odometry import StereoOdometry, View
+    from vo.odometry import View
 
-    data = synth_dir("rigid", 3, (160, 128))
-    cfg = load_config(None, ["weights.mode=constant"])
-    ds = open_dataset(data, cfg.data)
-    odo = StereoOdometry(ds.camera, cfg.vo())
-    fr = ds.frame(0)
-    frame = odo.make_view(fr.left, fr.right, fr.mask)
+    odo, frame = _odometry_and_first_view(synth_dir)
     H, W = 128, 160
     blob = torch.zeros(1, 1, H, W, dtype=torch.bool)
     blob[..., 50:70, 60:90] = True
