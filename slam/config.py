@@ -59,8 +59,8 @@ class TrackingConfig:
             brightness, ``slam.pipeline.exposure_gain``: the map's colour stays one exposure
             through exposure jumps, and the render is relit to the current frame's shading
             anyway) or ``as_seen`` (fused as captured: a few frames at a quarter of the brightness
-            left dark patches in the map that the flow against the render could not match, 5-10x
-            the ATE on a synthetic scanning sequence).
+            left dark patches in the map that the flow against the render could not match: 2x
+            the ATE on the synthetic scanning sequence of ``tests/test_exposure.py``).
         export_map: fuse a map in frame2frame too (without tracking against it) and export it.
         poses: ``estimated`` (track) or ``groundtruth``: take the dataset's ground-truth poses
             and fuse the map with them (mapping on its own, e.g. to measure the map's accuracy
