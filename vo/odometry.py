@@ -190,7 +190,9 @@ class StereoOdometry:
             depth: ``(H, W)`` mm; valid: ``(H, W)`` bool.
             background: a real view at the same pose (the last frame) whose colour fills the
                 pixels the model does not cover, so that the flow has no artificial edge there
-                (those pixels get 2D residuals only: the reference depth comes from the model).
+                (those pixels get 2D residuals only: the reference depth comes from the model),
+                and whose shading the render is relit to (:func:`relight`, over the pixels valid
+                in both: the background's highlights and instruments are not in the model).
             background_matchable: False when the background sits at another pose than the
                 render (the current frame filling a render at its own estimated pose): the
                 filled pixels are then not :attr:`View.matchable`.
