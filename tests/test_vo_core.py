@@ -181,3 +181,59 @@ def test_sample_by_flow_is_exact_on_integer_shifts():
     flow[:, 1] = 2.0
     out = sample_by_flow(img, flow)
     assert torch.allclose(out[0, 0, :4, :9], img[0, 0, 2:, 1:])
+
+
+def test_robust_3d_step_ignores_a_non_rigid_patch(synth_dir):
+    """Exact flow, a plane seen from two poses, and a patch of the reference pushed 2 mm towards
+    the camera (tissue that moved non-rigidly): the 3D residuals there pull the plain solution off
+    the true motion; one Cauchy-reweighted step (``solver.robust_3d_mm``) recovers it."""
+    from slam.config import load_config
+    from slam.datasets import open_dataset
+    from vo.odometry import StereoOdometry, View, cauchy_weights_3d
+    from vo.geometry import backproject, pixel_grid
+    from vo.lie import se3_exp
+
+    ds = open_dataset(synth_dir("rigid", 3, (160, 128)))
+    H, W = 128, 160
+    # the true motion current -> reference camera
+    T = se3_exp(torch.tensor([[0.4, -0.3, 0.2, 0.004, -0.003, 0.002]], dtype=torch.float64))[0]
+    K = torch.as_tensor(ds.camera.K, dtype=torch.float64)
+    # plane n . X = d in the reference frame: depth along each reference ray
+    n, d = torch.tensor([0.1, -0.05, 1.0], dtype=torch.float64), 60.0
+    grid = pixel_grid(H, W, dtype=torch.float64)[0]
+    rays = torch.stack([(grid[0] - K[0, 2]) / K[0, 0], (grid[1] - K[1, 2]) / K[1, 1], torch.ones(H, W, dtype=torch.float64)])
+    depth_ref = d / torch.einsum("c,chw->hw", n, rays)
+    # the same plane in the current frame: n_c . X_c = d_c with X_ref = R X_c + t
+    R, t = T[:3, :3], T[:3, 3]
+    n_c, d_c = R.T @ n, d - float(n @ t)
+    depth_cur = d_c / torch.einsum("c,chw->hw", n_c, rays)
+    X_ref = R @ (rays * depth_cur).reshape(3, -1) + t[:, None]
+    uv = (K @ X_ref)[:2] / X_ref[2:]
+    flow = (uv.reshape(2, H, W) - grid)[None].float()
+    bump = torch.zeros(H, W, dtype=torch.bool)
+    bump[30:80, 40:110] = True
+    depth_ref = torch.where(bump, depth_ref - 2.0, depth_ref)
+
+    def view(depth):
+        depth = depth.float()[None, None]
+        return View(image=torch.full((1, 3, H, W), 0.5), gray=np.full((H, W), 128, np.uint8), depth=depth,
+                    valid=torch.ones(1, 1, H, W, dtype=torch.bool), parallax=torch.zeros(1, 2, H, W))
+
+    errors = {}
+    for scale in (0.0, 0.5):
+        cfg = load_config(None, ["weights.mode=constant", "weights.w3d=1.0", f"solver.robust_3d_mm={scale}"])
+        odo = StereoOdometry(ds.camera, cfg.vo())
+        odo._correspondences = lambda cur, ref, flow_ref, chain_gain: (flow, None)     # exact flow
+        res = odo.track(view(depth_cur), view(depth_ref))
+        assert not res.failed
+        errors[scale] = float(np.linalg.norm(res.relative[:3, 3] - T[:3, 3].numpy()))
+    assert errors[0.0] > 0.05, errors             # the patch biases the plain solution
+    assert errors[0.5] < 0.2 * errors[0.0], errors
+    # the weights: 1 at zero residual, 1/2 at the scale
+    from vo.residuals import PoseProblem
+    pts = torch.rand(1, 3, 4)
+    prob = PoseProblem(points_cur=pts, target_px=torch.zeros(1, 2, 4), points_ref=pts + torch.tensor(
+        [0.0, 0.5, 1.0, 2.0])[None, None] / 200.0 * torch.tensor([[[1.0], [0.0], [0.0]]]),
+        w2d=torch.ones(1, 4), w3d=torch.ones(1, 4), K=K.float()[None], s2=1.0, s3=1.0)
+    w = cauchy_weights_3d(prob, torch.eye(4)[None], 200.0, 0.5)
+    assert torch.allclose(w, torch.tensor([[1.0, 0.5, 0.2, 1 / 17]]), atol=1e-5)

@@ -88,6 +88,12 @@ class SolverConfig:
         max_pixels: the solver uses at most this many valid pixels, evenly spaced over the valid
             set (0 = all). Cost then no longer grows with the image size; see
             tools/benchmark_speed.py for the accuracy it costs.
+        robust_3d_mm: > 0: after the solve, each pixel's 3D weight is multiplied by the Cauchy
+            weight ``1 / (1 + (r / robust_3d_mm)^2)`` of its 3D residual ``r`` (mm) at the
+            solution, and the pose is solved again from there (one IRLS step): tissue that moved
+            non-rigidly is an outlier to the rigid motion and no longer pulls the pose. 0 = off
+            (the paper's objective; the networks were trained through it). README, "Robust 3D
+            residuals".
     """
 
     method: str = "lm"
@@ -100,6 +106,7 @@ class SolverConfig:
     min_valid_pixels: int = 200
     init: str = "identity"
     max_pixels: int = 16384
+    robust_3d_mm: float = 0.0
 
 
 @dataclass

@@ -296,6 +296,10 @@ class StereoOdometry:
             failed, reason = True, f"only {n_valid} valid pixels"
         else:
             result = solve_pose(prob, scfg, init)
+            if scfg.robust_3d_mm > 0 and bool(torch.isfinite(result.T).all()):
+                robust = prob.with_weights(prob.w2d, prob.w3d * cauchy_weights_3d(prob, result.T, dmax,
+                                                                                  scfg.robust_3d_mm))
+                result = solve_pose(robust, scfg, result.T)
         t3 = time.perf_counter()
         relative = np.eye(4)
         if result is not None:
@@ -383,6 +387,15 @@ class StereoOdometry:
             self.previous_relative = result.relative
             self.reference = view
         return result
+
+
+def cauchy_weights_3d(prob: PoseProblem, T: torch.Tensor, max_depth_mm: float, scale_mm: float) -> torch.Tensor:
+    """``(B, N)`` Cauchy weights ``1 / (1 + (r / scale_mm)^2)`` of the 3D residuals ``r`` (mm)
+    of ``prob`` at the poses ``T`` ``(B, 4, 4)`` (translation in the problem's normalised units)."""
+    T = T.to(prob.points_cur.dtype)
+    moved = T[:, :3, :3] @ prob.points_cur + T[:, :3, 3:]
+    r_mm = (moved - prob.points_ref).norm(dim=1) * max_depth_mm
+    return 1.0 / (1.0 + (r_mm / scale_mm) ** 2)
 
 
 def inpaint_masked(image: torch.Tensor, gray: np.ndarray, masked: np.ndarray, radius: float,
