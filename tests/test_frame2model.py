@@ -177,6 +177,8 @@ def test_relight_gain_ignores_the_backgrounds_masked_pixels(synth_dir):
     change = (ref.image[0] - colour).abs().mean(0)
     assert change[ring].mean() < 0.01, f"{change[ring].mean():.4f}"
     assert ref.rendered and not frame.rendered
+    # the model's geometry seen with the real frame's pixels shows the frame's highlights
+    assert not odo.view_from_render(None, depth, covered, background=lit).rendered
     # taking the gain over the highlight too (the old behaviour) brightens the ring
     from vo.odometry import relight
     old = relight(colour[None], image, covered[None, None])
@@ -212,6 +214,8 @@ def test_masked_pixels_are_inpainted_for_the_flow_against_a_model_view(synth_dir
         ref = odo.view_from_render(ref_real.image[0], ref_real.depth[0, 0], torch.ones(H, W, dtype=torch.bool))
         assert np.array_equal(cur.masked, blob)
         flow, _ = odo._correspondences(cur, ref, None, 0.0)
+        if radius > 0:      # inpainted once per frame (its refinement passes reuse it)
+            assert cur.flow_input is not None and odo._flow_input(cur, ref) is cur.flow_input
         near = torch.from_numpy(~blob & (np.abs(yy - 62) < 25) & (np.abs(xx - 82) < 30))
         errors[radius] = float((flow[0, 0] - shift).abs()[near].mean())
         if radius > 0:      # a real reference: the frame's own pixels, as before

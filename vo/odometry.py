@@ -51,7 +51,12 @@ class View:
             marks only its covered pixels (those fill pixels give no residual).
         masked: ``(H, W)`` bool numpy, the pixels the frame's mask excludes (specular
             highlights, instruments, dark corners), or None (no mask given).
-        rendered: the view is a model view (it shows no highlights or instruments).
+        rendered: the view's image is the model's colour (it shows no highlights or
+            instruments); False for a real frame and for a model view seen with a real frame's
+            pixels.
+        flow_input: the image and grey image with the masked pixels inpainted, kept once
+            computed (:meth:`StereoOdometry._flow_input`: a frame is flowed against a model
+            view in its tracking pass, its refinement passes and, chained, as the last frame).
     """
 
     image: torch.Tensor
@@ -62,6 +67,7 @@ class View:
     matchable: torch.Tensor | None = None
     masked: np.ndarray | None = None
     rendered: bool = False
+    flow_input: tuple[torch.Tensor, np.ndarray] | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -214,7 +220,7 @@ class StereoOdometry:
         return View(image=image, gray=gray, depth=depth, valid=valid,
                     parallax=parallax_from_depth(depth, self.camera.depth_from_disparity_scale()),
                     matchable=None if background is None or background_matchable else covered,
-                    rendered=True)
+                    rendered=color is not None)
 
     # ---------------------------------------------------------------- tracking
     def _weights(self, cur: View, ref: View, flow: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -329,8 +335,10 @@ class StereoOdometry:
         radius = self.config.correspondence.inpaint_masked_px
         if not against.rendered or view.rendered or view.masked is None or radius <= 0:
             return view.image, view.gray
-        return inpaint_masked(view.image, view.gray, view.masked, radius,
-                              need_image=not isinstance(self.temporal_flow, DisFlow))
+        if view.flow_input is None:
+            view.flow_input = inpaint_masked(view.image, view.gray, view.masked, radius,
+                                             need_image=not isinstance(self.temporal_flow, DisFlow))
+        return view.flow_input
 
     def _correspondences(self, cur: View, ref: View, flow_ref: View | None,
                          chain_gain: float) -> tuple[torch.Tensor, torch.Tensor | None]:
