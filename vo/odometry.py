@@ -21,7 +21,7 @@ from vo.correspondence.dis import DisFlow, to_gray_u8
 from vo.depth import depth_from_parallax, flow_consistency, parallax_from_depth, vertical_parallax_ok
 from vo.geometry import backproject, lands_inside, pixel_grid, sample_by_flow, sample_valid_by_flow
 from vo.lie import rotation_angle_deg
-from vo.residuals import PoseProblem
+from vo.residuals import PoseProblem, residuals
 from vo.solver import solve_pose
 from vo.weights import WeightInputs, WeightNetworks, constant_weights, load_weight_networks
 
@@ -400,9 +400,8 @@ class StereoOdometry:
 def cauchy_weights_3d(prob: PoseProblem, T: torch.Tensor, max_depth_mm: float, scale_mm: float) -> torch.Tensor:
     """``(B, N)`` Cauchy weights ``1 / (1 + (r / scale_mm)^2)`` of the 3D residuals ``r`` (mm)
     of ``prob`` at the poses ``T`` ``(B, 4, 4)`` (translation in the problem's normalised units)."""
-    T = T.to(prob.points_cur.dtype)
-    moved = T[:, :3, :3] @ prob.points_cur + T[:, :3, 3:]
-    r_mm = (moved - prob.points_ref).norm(dim=1) * max_depth_mm
+    _, e3, _ = residuals(T.to(prob.points_cur.dtype), prob)
+    r_mm = e3.norm(dim=1) * (max_depth_mm / prob.s3)
     return 1.0 / (1.0 + (r_mm / scale_mm) ** 2)
 
 
