@@ -294,7 +294,7 @@ class Pipeline:
         gt_depth = frame.gt_depth if use_gt_depth else None
         if use_gt_depth and gt_depth is None:
             raise SlamError(f"{self.dataset.path}: depth.source=groundtruth needs ground-truth depth maps (synthetic data)")
-        view = self.odometry.make_view(frame.left, frame.right, frame.mask, gt_depth, timings)
+        view = self.odometry.make_view(frame.left, frame.right, frame.mask, gt_depth, timings, frame.specular)
         for stage, ms in timings.items():
             self._time(stage, ms)
         if self.gt_poses_only:

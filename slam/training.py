@@ -208,7 +208,7 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
     def view(k):
         if k not in views:
             f = dataset.frame(k)
-            views[k] = odo.make_view(f.left, f.right, f.mask)
+            views[k] = odo.make_view(f.left, f.right, f.mask, specular=f.specular)
         return views[k]
 
     samples = []

@@ -115,7 +115,7 @@ def compute_depth_cache(data: str | Path, path: str | Path, overrides: list[str]
         frame = dataset.frame(k)
         t0 = time.perf_counter()
         with torch.inference_mode():
-            view = odometry.make_view(frame.left, frame.right, frame.mask)
+            view = odometry.make_view(frame.left, frame.right, frame.mask, specular=frame.specular)
         stereo_ms[k] = (time.perf_counter() - t0) * 1000.0
         d = view.depth[0, 0].cpu().numpy().astype(np.float64)
         d[~frame.mask] = 0.0

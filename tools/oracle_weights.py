@@ -59,7 +59,7 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
         f = ds.frame(k)
         if "nonrigid_mm" not in f.extras:
             raise SystemExit(f"{data}: no nonrigid/ ground truth (write it with `slam synth`)")
-        views.append(odo.make_view(f.left, f.right, f.mask))
+        views.append(odo.make_view(f.left, f.right, f.mask, specular=f.specular))
         nonrigid.append(torch.from_numpy(f.extras["nonrigid_mm"])[None, None].float())
     rows = []
     for gap in gaps:

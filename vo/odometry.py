@@ -146,13 +146,16 @@ class StereoOdometry:
         return estimator.flow(a_img, b_img)
 
     def make_view(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None = None,
-                  gt_depth: np.ndarray | None = None, timings: dict | None = None) -> View:
+                  gt_depth: np.ndarray | None = None, timings: dict | None = None,
+                  specular: np.ndarray | None = None) -> View:
         """A view from a rectified stereo pair.
 
         Args:
             left, right: ``(H, W, 3)`` uint8 RGB.
             mask: ``(H, W)`` bool valid tissue pixels, or None.
             gt_depth: ``(H, W)`` float depth in mm to use instead of stereo depth (error budget).
+            specular: ``(2, H, W)`` bool specular highlights of the left and right views, or
+                None; inpainted for the stereo match (``correspondence.stereo_inpaint_px``).
         """
         t0 = time.perf_counter()
         img_l = image_tensor(left, self.device)
@@ -170,13 +173,24 @@ class StereoOdometry:
         else:
             img_r = image_tensor(right, self.device)
             gray_r = to_gray_u8(img_r[0])
-            parallax = self._flow(self.stereo_flow, img_l, gray_l, img_r, gray_r)
-            depth, valid = depth_from_parallax(parallax, fxb, dcfg, valid_mask)
             ccfg = self.config.correspondence
+            st_l, st_r = (img_l, gray_l), (img_r, gray_r)
+            if specular is not None and ccfg.stereo_inpaint_px > 0:
+                need_image = not isinstance(self.stereo_flow, DisFlow)
+                if specular[0].any():
+                    st_l = inpaint_masked(img_l, gray_l, specular[0], ccfg.stereo_inpaint_px, need_image)
+                if specular[1].any():
+                    st_r = inpaint_masked(img_r, gray_r, specular[1], ccfg.stereo_inpaint_px, need_image)
+            parallax = self._flow(self.stereo_flow, *st_l, *st_r)
+            depth, valid = depth_from_parallax(parallax, fxb, dcfg, valid_mask)
+            if specular is not None and ccfg.stereo_inpaint_px > 0 and specular[1].any():
+                # a match that lands on the right view's highlight found no tissue there
+                seen_r = torch.from_numpy(~np.asarray(specular[1], dtype=bool)).to(self.device)[None, None]
+                valid &= sample_valid_by_flow(seen_r, parallax)
             if ccfg.max_vertical_parallax_px > 0:
                 valid &= vertical_parallax_ok(parallax, ccfg.max_vertical_parallax_px)
             if ccfg.lr_check_px > 0:
-                back = self._flow(self.stereo_flow, img_r, gray_r, img_l, gray_l)
+                back = self._flow(self.stereo_flow, *st_r, *st_l)
                 valid &= flow_consistency(parallax, back, ccfg.lr_check_px)
             depth = torch.where(valid, depth, torch.zeros_like(depth))
         if timings is not None:
@@ -376,14 +390,14 @@ class StereoOdometry:
 
     # ---------------------------------------------------------------- frame2frame
     def register(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None = None,
-                 gt_depth: np.ndarray | None = None) -> TrackResult | None:
+                 gt_depth: np.ndarray | None = None, specular: np.ndarray | None = None) -> TrackResult | None:
         """Frame-to-frame odometry step: track the new pair against the previous one and chain.
 
         Returns None for the first frame (it becomes the reference). On failure the pose and the
         reference are kept (the next frame is tracked against the last good one).
         """
         timings: dict = {}
-        view = self.make_view(left, right, mask, gt_depth, timings)
+        view = self.make_view(left, right, mask, gt_depth, timings, specular)
         if self.reference is None:
             self.reference = view
             return None

@@ -23,6 +23,9 @@ class StereoFrame:
         gt_depth: ``(H, W)`` float32 ground-truth depth of the rectified left view in mm
             (synthetic data only), or None.
         extras: reader-specific per-frame data (e.g. synthetic non-rigid motion maps).
+        specular: ``(2, H, W)`` bool specular highlights of the left and right views (True =
+            highlight, dilated as in ``mask``), or None. A highlight is the light's mirror image,
+            so the two views show it on different tissue: stereo matching must not see it.
     """
 
     index: int
@@ -33,3 +36,4 @@ class StereoFrame:
     gt_pose: Optional[np.ndarray] = None
     gt_depth: Optional[np.ndarray] = None
     extras: dict = field(default_factory=dict)
+    specular: Optional[np.ndarray] = None

@@ -29,7 +29,7 @@ import numpy as np
 
 from slam.datasets.base import StereoFrame
 from slam.datasets.config import DataConfig
-from slam.datasets.masks import combine_masks
+from slam.datasets.masks import combine_masks, specular_mask
 from slam.datasets.selection import parse_frames
 from slam.errors import DataError
 from slam.tum import read_tum
@@ -149,8 +149,10 @@ class StereoDataset:
         instrument = None
         if raw.instrument is not None and cfg.use_mask_files:
             instrument = proc.rectify_left_mask(raw.instrument, src)
+        specular = np.stack([specular_mask(left, cfg.specular_threshold, cfg.specular_dilate_px),
+                             specular_mask(right, cfg.specular_threshold, cfg.specular_dilate_px)])
         mask = combine_masks(left, instrument, cfg.specular_threshold, cfg.specular_dilate_px, proc.valid_mask,
-                             cfg.dark_threshold)
+                             cfg.dark_threshold, specular=specular[0])
         depth = None
         if raw.depth is not None:
             depth = proc.rectify_left_nearest(np.asarray(raw.depth, dtype=np.float32), src)
@@ -169,6 +171,7 @@ class StereoDataset:
             gt_pose=gt,
             gt_depth=depth,
             extras=extras,
+            specular=specular,
         )
 
 

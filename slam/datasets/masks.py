@@ -65,13 +65,17 @@ def combine_masks(
     dilate_px: int,
     valid: Optional[np.ndarray] = None,
     dark_threshold: float = 0.0,
+    specular: Optional[np.ndarray] = None,
 ) -> np.ndarray:
     """The frame mask: ``instrument AND NOT specular(left_rgb) AND NOT dark(left_rgb) AND valid``
     (True = valid tissue).
 
     ``instrument`` (True = tissue) and ``valid`` may be None (all True); all at the image's size.
+    ``specular``: the left view's :func:`specular_mask` if already computed.
     """
-    mask = ~specular_mask(left_rgb, threshold, dilate_px)
+    if specular is None:
+        specular = specular_mask(left_rgb, threshold, dilate_px)
+    mask = ~specular
     if dark_threshold > 0:
         mask &= ~dark_mask(left_rgb, dark_threshold)
     if instrument is not None:
