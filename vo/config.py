@@ -40,7 +40,7 @@ class CorrespondenceConfig:
             tissue (on synthetic rigid sequences the depth within 3 px of a highlight was off by
             1.0 mm on average, within 6-10 px by 0.63, elsewhere 0.32). The highlights' own
             pixels stay invalid, and so do the left pixels whose match lands on a right-view
-            highlight.
+            highlight. Costs 6-12 ms per frame at 320x256 with 3.5-5 % of the pixels in highlights.
     """
 
     backend: str = "dis"
