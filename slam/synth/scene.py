@@ -108,6 +108,9 @@ def _fold(rng: np.random.Generator, grid: Grid) -> np.ndarray:
     cv2.polylines(canvas, [px.reshape(-1, 1, 2)], False, 0, 1, cv2.LINE_8, 3)
     dist = cv2.distanceTransform(canvas, cv2.DIST_L2, 5) * grid.res
     width = rng.uniform(5.0, 10.0)
+    # a curve that misses the grid leaves no zero pixel: the transform then returns ~1e20 (whose
+    # square overflows float32); beyond 10 widths the ridge is exp(-50), i.e. nothing
+    dist = np.minimum(dist, 10.0 * width)
     amp = rng.uniform(3.0, 6.0) * (1 if rng.random() < 0.5 else -1)
     return (amp * np.exp(-0.5 * (dist / width) ** 2)).astype(np.float32)
 
