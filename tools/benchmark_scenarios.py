@@ -14,7 +14,7 @@ Evaluation seeds (9000+) were fixed before any tuning and are disjoint from the 
   learned 2D&3D    both, learned (weights_2d3d.pt, the default)
 Sequences run in parallel worker processes. On breathing and deforming sequences it also reports
 the mean learned w3D on pixels whose tissue moved non-rigidly by more than 0.5 mm against the mean
-on the other pixels (the generator's ground truth, `nonrigid/`).
+on the other pixels (the generator's ground truth, `nonrigid/`), and the same ratio for w2D.
 """
 from __future__ import annotations
 
@@ -36,21 +36,25 @@ METHODS = {
 
 
 class WeightStats:
-    """A pipeline logger that accumulates mean w3D on non-rigid and rigid pixels."""
+    """A pipeline logger that accumulates the mean w3D (and w2D) on pixels whose tissue moved
+    non-rigidly by more than ``threshold_mm`` and on the others (keys ``moving`` / ``still`` for
+    w3D, ``w2d_moving`` / ``w2d_still`` for w2D)."""
 
     def __init__(self, threshold_mm: float = 0.5):
         self.threshold = threshold_mm
-        self.sums = {"moving": [0.0, 0], "still": [0.0, 0]}
+        self.sums = {key: [0.0, 0] for key in ("moving", "still", "w2d_moving", "w2d_still")}
 
     def log_frame(self, k, frame, view, track, record, map_, camera, pose_rect):
         if track is None or track.failed or "nonrigid_mm" not in frame.extras:
             return
-        w3 = track.w3d[0, 0].numpy()
-        valid = w3 > 0
         nonrigid = frame.extras["nonrigid_mm"]
-        for key, sel in (("moving", valid & (nonrigid > self.threshold)), ("still", valid & (nonrigid <= self.threshold))):
-            self.sums[key][0] += float(w3[sel].sum())
-            self.sums[key][1] += int(sel.sum())
+        for prefix, weights in (("", track.w3d), ("w2d_", track.w2d)):
+            w = weights[0, 0].numpy()
+            valid = w > 0
+            for key, sel in (("moving", valid & (nonrigid > self.threshold)),
+                             ("still", valid & (nonrigid <= self.threshold))):
+                self.sums[prefix + key][0] += float(w[sel].sum())
+                self.sums[prefix + key][1] += int(sel.sum())
 
     def log_final(self, *args):
         pass
@@ -171,11 +175,14 @@ def weight_check(results: list[dict]) -> str:
         ratio = w["moving"] / max(w["still"], 1e-12)
         frac = w.get("fraction_moving")
         frac = f"{frac:.2f}" if frac is not None else "-"
-        lines.append(f"| {scenario} s{seed} | {frac} | {w['moving']:.4f} | {w['still']:.4f} | {ratio:.2f} |")
+        w2 = "-"
+        if w.get("w2d_moving") is not None and w.get("w2d_still"):
+            w2 = f"{w['w2d_moving'] / w['w2d_still']:.2f}"
+        lines.append(f"| {scenario} s{seed} | {frac} | {w['moving']:.4f} | {w['still']:.4f} | {ratio:.2f} | {w2} |")
     if not lines:
         return ""
-    return "\n".join(["| sequence | share of pixels non-rigid > 0.5 mm | mean w3D, non-rigid | mean w3D, other | ratio |",
-                      "|---|---|---|---|---|", *lines])
+    return "\n".join(["| sequence | share of pixels non-rigid > 0.5 mm | mean w3D, non-rigid | mean w3D, other "
+                      "| ratio | w2D ratio |", "|---|---|---|---|---|---|", *lines])
 
 
 if __name__ == "__main__":

@@ -1,0 +1,51 @@
+"""tools/benchmark_scenarios.py end to end on tiny sequences: Table 1's layout, the averages it
+prints, and the weight-map check on moving tissue."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+import benchmark_scenarios as B  # noqa: E402
+
+
+def test_table_has_per_scenario_mean_and_both_averages(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "bench"
+    monkeypatch.setattr(sys, "argv", ["benchmark_scenarios.py", "--scenarios", "breathing", "scanning",
+                                      "--seeds", "5", "6", "--frames", "12", "--size", "160x128",
+                                      "--workers", "1", "--methods", "w = 1", "learned 2D&3D", "--out", str(out)])
+    B.main()
+    results = json.loads((out / "scenarios.json").read_text())
+    assert {(r["scenario"], r["seed"], r["method"]) for r in results} == {
+        (s, seed, m) for s in ("breathing", "scanning") for seed in (5, 6) for m in ("w = 1", "learned 2D&3D")}
+    for r in results:
+        assert r["failed"] == 0 and 0 < r["ate_rmse_mm"] < 3.0, r
+    assert len(list((out / "runs").glob("*/trajectory.txt"))) == len(results)
+    table = (out / "scenarios.md").read_text()
+    assert table.splitlines()[0] == "| method | breathing | scanning | micro avg. | macro avg. |"
+    assert table.splitlines()[0] in capsys.readouterr().out
+    learned = {(r["scenario"], r["seed"]): r["ate_rmse_mm"] for r in results if r["method"] == "learned 2D&3D"}
+    # scanning here: (a, b); micro over all four sequences; macro over the two scenario means
+    scan = [learned["scanning", 5], learned["scanning", 6]]
+    allv = list(learned.values())
+    means = [np.mean([learned["breathing", 5], learned["breathing", 6]]), np.mean(scan)]
+    row = next(line for line in table.splitlines() if line.startswith("| learned 2D&3D |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2] == f"{np.mean(scan):.2f} ± {np.std(scan):.2f}"
+    assert cells[3] == f"{np.mean(allv):.2f} ± {np.std(allv):.2f}"
+    assert cells[4] == f"{np.mean(means):.2f} ± {np.std(means):.2f}"
+    # the weight check: breathing sequences only (scanning is not in it), learned 2D&3D only
+    check = [line for line in table.splitlines() if line.startswith("| breathing s")]
+    assert [line.split("|")[1].strip() for line in check] == ["breathing s5", "breathing s6"]
+    for r in results:
+        if r["method"] == "learned 2D&3D" and r["scenario"] == "breathing":
+            w = r["w3d"]
+            assert 0 < w["fraction_moving"] < 1
+            assert 0 < w["moving"] < 1 and 0 < w["still"] < 1 and 0 < w["w2d_moving"] < 1 and 0 < w["w2d_still"] < 1
+            line = next(line for line in check if line.startswith(f"| breathing s{r['seed']} "))
+            assert line.endswith(f"| {w['moving'] / w['still']:.2f} | {w['w2d_moving'] / w['w2d_still']:.2f} |")
+        else:
+            assert r["method"] != "w = 1" or r["w3d"] is None
