@@ -207,7 +207,7 @@ class Pipeline:
             # true pose, the render at the estimate) and gives the render its shading
             ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=view,
                                                  background_matchable=False)
-            refined = self.odometry.track(view, ref)
+            refined = self.odometry.track(view, ref, model_reference=True)
             for stage, ms in refined.timings_ms.items():
                 self._time(stage, ms)
             if refined.failed:
@@ -311,7 +311,8 @@ class Pipeline:
         ref, flow_ref, kind = self._reference(last_view, pose_rect)
         T_init = self.velocity if self.config.solver.init == "constant_velocity" else None
         track = self.odometry.track(view, ref, flow_ref, T_init=T_init,
-                                    chain_gain=self.chain_gain if kind == "model" else 0.0)
+                                    chain_gain=self.chain_gain if kind == "model" else 0.0,
+                                    model_reference=kind == "model")
         for stage, ms in track.timings_ms.items():
             self._time(stage, ms)
         if track.failed:

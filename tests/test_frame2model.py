@@ -224,3 +224,33 @@ def test_masked_pixels_are_inpainted_for_the_flow_against_a_model_view(synth_dir
             flow_plain, _ = StereoOdometry(ds.camera, cfg0.vo())._correspondences(cur, ref_real, None, 0.0)
             assert torch.equal(flow_real, flow_plain)
     assert errors[3.0] < 0.5 * errors[0.0], errors
+
+
+def test_robust_3d_step_follows_the_reference_kind(synth_dir, tmp_path):
+    """The robust 3D step uses ``solver.robust_3d_mm`` against camera frames and
+    ``solver.robust_3d_model_mm`` against views rendered from the map (refinement passes too)."""
+    from slam.config import load_config
+    from slam.datasets import open_dataset
+    from slam.pipeline import Pipeline
+
+    data = synth_dir("rigid", 6, (160, 128))
+    cfg = load_config(None, ["tracking.mode=frame2model", "tracking.refine_passes=1"])
+    pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / "run")
+    calls = []
+    track = pipe.odometry.track
+
+    def recording_track(cur, ref, *args, model_reference=False, **kwargs):
+        calls.append(model_reference)
+        return track(cur, ref, *args, model_reference=model_reference, **kwargs)
+
+    pipe.odometry.track = recording_track
+    result = pipe.run(progress=False)
+    assert not any(r.failed for r in result.records)
+    # frame 1 against the map fused from frame 0, then one refinement pass per frame
+    assert calls == [True] * 10, calls
+    frames = Pipeline(load_config(None, ["tracking.mode=frame2frame"]), open_dataset(data, cfg.data), tmp_path / "f2f")
+    calls.clear()
+    track = frames.odometry.track
+    frames.odometry.track = recording_track
+    frames.run(progress=False)
+    assert calls == [False] * 5, calls

@@ -220,15 +220,23 @@ def test_robust_3d_step_ignores_a_non_rigid_patch(synth_dir):
                     valid=torch.ones(1, 1, H, W, dtype=torch.bool), parallax=torch.zeros(1, 2, H, W))
 
     errors = {}
-    for scale in (0.0, 0.5):
-        cfg = load_config(None, ["weights.mode=constant", "weights.w3d=1.0", f"solver.robust_3d_mm={scale}"])
+    for scale, model_scale, model_reference in ((0.0, 0.0, False), (0.5, 0.0, False), (0.5, 0.0, True),
+                                                (0.0, 0.5, True)):
+        cfg = load_config(None, ["weights.mode=constant", "weights.w3d=1.0", f"solver.robust_3d_mm={scale}",
+                                 f"solver.robust_3d_model_mm={model_scale}"])
         odo = StereoOdometry(ds.camera, cfg.vo())
         odo._correspondences = lambda cur, ref, flow_ref, chain_gain: (flow, None)     # exact flow
-        res = odo.track(view(depth_cur), view(depth_ref))
+        res = odo.track(view(depth_cur), view(depth_ref), model_reference=model_reference)
         assert not res.failed
-        errors[scale] = float(np.linalg.norm(res.relative[:3, 3] - T[:3, 3].numpy()))
-    assert errors[0.0] > 0.05, errors             # the patch biases the plain solution
-    assert errors[0.5] < 0.2 * errors[0.0], errors
+        errors[scale, model_scale, model_reference] = float(np.linalg.norm(res.relative[:3, 3] - T[:3, 3].numpy()))
+    plain = errors[0.0, 0.0, False]
+    assert plain > 0.05, errors             # the patch biases the plain solution
+    assert errors[0.5, 0.0, False] < 0.2 * plain, errors
+    # against a model view the step follows solver.robust_3d_model_mm (off by default)
+    assert errors[0.5, 0.0, True] == pytest.approx(plain, rel=1e-6), errors
+    assert errors[0.0, 0.5, True] == pytest.approx(errors[0.5, 0.0, False], rel=1e-6), errors
+    defaults = load_config(None, []).vo().solver
+    assert defaults.robust_3d_mm == 0.5 and defaults.robust_3d_model_mm == 0.0
     # the weights: 1 at zero residual, 1/2 at the scale
     from vo.residuals import PoseProblem
     pts = torch.rand(1, 3, 4)

@@ -266,7 +266,7 @@ class StereoOdometry:
         return target, valid, valid3, points_ref
 
     def track(self, cur: View, ref: View, flow_ref: View | None = None, T_init: np.ndarray | None = None,
-              chain_gain: float = 0.0) -> TrackResult:
+              chain_gain: float = 0.0, model_reference: bool = False) -> TrackResult:
         """Estimate the transform from ``cur``'s camera to ``ref``'s camera.
 
         Args:
@@ -283,6 +283,8 @@ class StereoOdometry:
                 handed on to the next frame; the short flow between two views of the same pose
                 measures it, and a gain below 1 removes it over a few frames while damping the
                 render's flow noise (a complementary filter). 0: no chain.
+            model_reference: ``ref`` is a view rendered from the map: the robust 3D step uses
+                ``solver.robust_3d_model_mm`` instead of ``solver.robust_3d_mm``.
         """
         timings: dict = {}
         t0 = time.perf_counter()
@@ -316,9 +318,9 @@ class StereoOdometry:
             failed, reason = True, f"only {n_valid} valid pixels"
         else:
             result = solve_pose(prob, scfg, init)
-            if scfg.robust_3d_mm > 0 and bool(torch.isfinite(result.T).all()):
-                robust = prob.with_weights(prob.w2d, prob.w3d * cauchy_weights_3d(prob, result.T, dmax,
-                                                                                  scfg.robust_3d_mm))
+            robust_mm = scfg.robust_3d_model_mm if model_reference else scfg.robust_3d_mm
+            if robust_mm > 0 and bool(torch.isfinite(result.T).all()):
+                robust = prob.with_weights(prob.w2d, prob.w3d * cauchy_weights_3d(prob, result.T, dmax, robust_mm))
                 result = solve_pose(robust, scfg, result.T)
         t3 = time.perf_counter()
         relative = np.eye(4)
