@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import resource
 import time
 from dataclasses import dataclass, field
@@ -19,6 +20,7 @@ import numpy as np
 import torch
 
 from slam.config import SlamConfig, save_config
+from slam.datasets.base import StereoFrame
 from slam.errors import DataError, SlamError
 from slam.prefetch import Prefetcher
 from slam.tum import TumStreamWriter
@@ -130,8 +132,6 @@ class Pipeline:
         self.logger = logger
         self.camera = dataset.camera
         self.R1 = _R1_4x4(dataset.R1)
-        if config.threads > 0:
-            torch.set_num_threads(config.threads)
         self.odometry = StereoOdometry(self.camera, config.vo(), device=config.device)
         mode = config.tracking.mode
         self.map = None
@@ -249,7 +249,9 @@ class Pipeline:
         n = len(self.dataset)
         writer = TumStreamWriter(self.out_dir / "trajectory.txt")
         bar = tqdm(total=n, unit="frame", disable=not progress, dynamic_ncols=True, leave=False)
-        reader = Prefetcher(self.dataset.frame, n)
+        reader = Prefetcher(self._read_view, n)
+        threads_before = torch.get_num_threads()
+        torch.set_num_threads(self._torch_threads())
         t_start = time.perf_counter()
         try:
             for k in range(n):
@@ -272,9 +274,37 @@ class Pipeline:
             reader.close()
             bar.close()
             writer.close()
+            torch.set_num_threads(threads_before)
         wall = time.perf_counter() - t_start
         self._finish(result, wall)
         return result
+
+    def _stereo_ahead(self) -> bool:
+        return self.config.tracking.stereo_ahead and self.odometry.stereo_flow is not self.odometry.temporal_flow
+
+    def _torch_threads(self) -> int:
+        """``threads``, or with 0 every core but the read-ahead thread's (torch's default without it)."""
+        if self.config.threads > 0:
+            return self.config.threads
+        if not self._stereo_ahead():
+            return torch.get_num_threads()
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        return max(1, cores - 1)
+
+    def _read_view(self, k: int) -> tuple[StereoFrame, Optional[View], dict]:
+        """Frame ``k`` and, with ``tracking.stereo_ahead``, its view and the view's timings (the
+        read-ahead thread runs this). Raises what reading the frame raises."""
+        frame = self.dataset.frame(k)
+        timings: dict = {}
+        return frame, (self._make_view(frame, timings) if self._stereo_ahead() else None), timings
+
+    def _make_view(self, frame: StereoFrame, timings: dict) -> View:
+        """Stereo depth (or the ground-truth depth of ``depth.source: groundtruth``) of ``frame``."""
+        use_gt_depth = self.config.depth.source == "groundtruth"
+        gt_depth = frame.gt_depth if use_gt_depth else None
+        if use_gt_depth and gt_depth is None:
+            raise SlamError(f"{self.dataset.path}: depth.source=groundtruth needs ground-truth depth maps (synthetic data)")
+        return self.odometry.make_view(frame.left, frame.right, frame.mask, gt_depth, timings, frame.specular)
 
     def _step(self, k: int, index: int, stamp: float, last_view: Optional[View],
               pose_rect: np.ndarray, reader: Prefetcher) -> tuple[FrameRecord, np.ndarray, Optional[View]]:
@@ -285,16 +315,13 @@ class Pipeline:
         """
         try:
             t0 = time.perf_counter()
-            frame = reader.get(k)   # read ahead in a thread: this is the time spent waiting for it
+            frame, view, timings = reader.get(k)   # read ahead in a thread: the time spent waiting for it
             self._time("read", (time.perf_counter() - t0) * 1000.0)
         except DataError as err:
             return FrameRecord(index, stamp, pose_rect @ self.R1, True, f"unreadable frame: {err}"), pose_rect, last_view
-        timings: dict = {}
-        use_gt_depth = self.config.depth.source == "groundtruth"
-        gt_depth = frame.gt_depth if use_gt_depth else None
-        if use_gt_depth and gt_depth is None:
-            raise SlamError(f"{self.dataset.path}: depth.source=groundtruth needs ground-truth depth maps (synthetic data)")
-        view = self.odometry.make_view(frame.left, frame.right, frame.mask, gt_depth, timings, frame.specular)
+        if view is None:
+            timings = {}
+            view = self._make_view(frame, timings)
         for stage, ms in timings.items():
             self._time(stage, ms)
         if self.gt_poses_only:

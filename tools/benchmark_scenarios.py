@@ -82,7 +82,8 @@ def run_one(job: dict) -> dict:
     if job.get("checkpoints") and "weights.mode=learned" in overrides:
         residuals = next(o.split("=", 1)[1] for o in overrides if o.startswith("weights.residuals="))
         overrides.append(f"weights.checkpoint={Path(job['checkpoints']) / f'weights_{residuals}.pt'}")
-    cfg = load_config(None, [*overrides, "logging.progress=false", *job["extra"]])
+    # one torch thread per worker process (the workers share the cores)
+    cfg = load_config(None, [*overrides, "logging.progress=false", "threads=1", *job["extra"]])
     stats = WeightStats() if job["method"] == "learned 2D&3D" else None
     dataset = open_dataset(data, cfg.data)
     result = Pipeline(cfg, dataset, Path(job["out"]), logger=stats).run(progress=False)
