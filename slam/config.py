@@ -264,6 +264,7 @@ def validate(config: SlamConfig) -> None:
         (config.solver.max_iters >= 1, "solver.max_iters must be >= 1"),
         (config.solver.robust_3d_mm >= 0, "solver.robust_3d_mm must be >= 0 (0 = off)"),
         (config.solver.robust_3d_model_mm >= 0, "solver.robust_3d_model_mm must be >= 0 (0 = off)"),
+        (config.solver.kernel in ("torch", "compiled", "auto"), "solver.kernel must be torch, compiled or auto"),
         (config.weights.downscale >= 1, "weights.downscale must be >= 1"),
         (config.data.width >= 0 and config.data.height >= 0, "data.width/height must be >= 0"),
         ((config.data.width == 0) == (config.data.height == 0), "data.width and data.height: set both or neither"),

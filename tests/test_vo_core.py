@@ -245,3 +245,45 @@ def test_robust_3d_step_ignores_a_non_rigid_patch(synth_dir):
         w2d=torch.ones(1, 4), w3d=torch.ones(1, 4), K=K.float()[None], s2=1.0, s3=1.0)
     w = cauchy_weights_3d(prob, torch.eye(4)[None], 200.0, 0.5)
     assert torch.allclose(w, torch.tensor([[1.0, 0.5, 0.2, 1 / 17]]), atol=1e-5)
+
+
+def test_compiled_normal_equations_match_torch():
+    """``solver.kernel: compiled`` (one numba loop) builds the same Gauss-Newton system as the
+    torch code: to float64 rounding on float64 data, to float32 rounding on float32 data; the
+    solver then lands on the same pose, batched too, and refuses to run where gradients flow."""
+    from vo.solver import normal_equations
+    from vo.solver_kernels import normal_equations_compiled
+
+    ps = [p_from_mm_rad([0.4, -0.2, 0.7], [0.01, -0.02, 0.005]), p_from_mm_rad([-0.3, 0.5, -0.2], [0.0, 0.01, -0.02])]
+    probs = [make_problem(p, H=20, W=24, seed=i) for i, p in enumerate(ps)]
+    prob = PoseProblem(*(torch.cat([getattr(q, f) for q in probs]) for f in
+                         ("points_cur", "target_px", "points_ref", "w2d", "w3d", "K")), probs[0].s2, probs[0].s3)
+    g = torch.Generator().manual_seed(4)
+    w2, w3 = (torch.rand(prob.w2d.shape, generator=g, dtype=torch.float64) for _ in range(2))
+    w2[:, ::7] = 0.0                                 # pixels without a 2D residual
+    w3[:, ::5] = 0.0
+    prob = prob.with_weights(w2, w3)
+    prob = PoseProblem(prob.points_cur, prob.target_px + 0.3 * torch.randn(prob.target_px.shape, generator=g,
+                       dtype=torch.float64), prob.points_ref, prob.w2d, prob.w3d, prob.K, prob.s2, prob.s3)
+    T = se3_exp(torch.randn(2, 6, dtype=torch.float64, generator=g) * 0.01)
+    for data, rtol in ((prob, 1e-10), (prob.to(torch.float32), 1e-5)):
+        ref = normal_equations(T.to(data.points_cur.dtype), data)
+        got = normal_equations_compiled(T.to(data.points_cur.dtype), data)
+        for a, b in zip(ref, got):
+            assert b.dtype == torch.float64
+            assert torch.allclose(b, a.double(), rtol=rtol, atol=rtol * float(a.abs().max())), (a, b)
+    p_gt = p_from_mm_rad([0.8, -0.5, 1.2], [0.02, -0.015, 0.01])
+    exact = make_problem(p_gt)
+    for method in ("lm", "gauss_newton"):
+        res = solve_pose(exact, SolverConfig(method=method, kernel="compiled"))
+        rot_err, trans_err = pose_errors(res.p, p_gt)
+        assert rot_err < 1e-5 and trans_err < 1e-5, (rot_err, trans_err)
+    noisy32 = prob.to(torch.float32)
+    a = solve_pose(noisy32, SolverConfig()).T
+    b = solve_pose(noisy32, SolverConfig(kernel="compiled")).T
+    assert torch.allclose(a, b, atol=1e-5)
+    with_grad = exact.with_weights(exact.w2d.clone().requires_grad_(True), exact.w3d)
+    with pytest.raises(ValueError, match="compiled"):
+        solve_pose(with_grad, SolverConfig(kernel="compiled"))
+    auto = solve_pose(with_grad, SolverConfig(kernel="auto"))           # falls back to torch
+    assert torch.equal(auto.T, solve_pose(with_grad, SolverConfig()).T)

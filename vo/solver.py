@@ -93,6 +93,24 @@ def _solve_damped(H: torch.Tensor, g: torch.Tensor, lam: torch.Tensor) -> torch.
     return torch.linalg.solve(A, -g)
 
 
+def _normal_equations_for(prob: PoseProblem, config: SolverConfig):
+    """The torch normal equations, or the compiled loop of ``vo.solver_kernels`` when
+    ``config.kernel`` asks for it and the problem is on the CPU without gradients."""
+    kernel = getattr(config, "kernel", "torch")
+    if kernel == "torch":
+        return normal_equations
+    from vo import solver_kernels
+
+    tensors = (prob.points_cur, prob.target_px, prob.points_ref, prob.w2d, prob.w3d)
+    usable = (solver_kernels.AVAILABLE and prob.points_cur.device.type == "cpu"
+              and not any(t.requires_grad for t in tensors))
+    if kernel == "compiled" and not usable:
+        raise ValueError("solver.kernel=compiled needs numba and a CPU problem without gradients")
+    if kernel not in ("compiled", "auto"):
+        raise ValueError(f"unknown solver.kernel '{kernel}' (torch, compiled, auto)")
+    return solver_kernels.normal_equations_compiled if usable else normal_equations
+
+
 def solve_pose_lm(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor | None = None,
                   damping: bool = True) -> SolverResult:
     """Levenberg-Marquardt (``damping=True``) or Gauss-Newton on the analytic Jacobians.
@@ -107,6 +125,7 @@ def solve_pose_lm(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor 
     T = torch.eye(4, dtype=dtype, device=device).repeat(B, 1, 1) if T_init is None else T_init.to(dtype).clone()
     lam = torch.full((B,), 1e-4 if damping else 0.0, dtype=torch.float64, device=device)
     converged = torch.zeros(B, dtype=torch.bool, device=device)
+    normal_equations = _normal_equations_for(prob, config)
     H, g, cost = normal_equations(T, prob)
     cost_prev = cost
     accepted_before = torch.ones(B, dtype=torch.bool, device=device)
