@@ -105,15 +105,15 @@ class SolverConfig:
             through it, this step runs after the optimum). Applies when the reference is a
             camera frame (frame2frame, and frame2model's fallback to the last frame). README,
             "Robust 3D residuals".
+        robust_3d_model_mm: the same step when the reference is a view rendered from the map
+            (frame2model, its refinement passes). Off by default: the fused model depth carries
+            few of the outliers the step is for, and there it changed the ATE by 1 % for 20-35 %
+            more frame time (README, "Robust 3D residuals").
         kernel: how the LM normal equations are built: ``torch`` (vectorised, any device,
             differentiable), ``compiled`` (one numba loop over the pixels, CPU without gradients:
             4x faster per evaluation at 16k pixels, float64 sums, equal to ``torch`` to float32
             rounding; ``vo.solver_kernels``) or ``auto`` (compiled where it can run, torch
             elsewhere).
-        robust_3d_model_mm: the same step when the reference is a view rendered from the map
-            (frame2model, its refinement passes). Off by default: the fused model depth carries
-            few of the outliers the step is for, and there it changed the ATE by 1 % for 20-35 %
-            more frame time (README, "Robust 3D residuals").
     """
 
     method: str = "lm"

@@ -96,9 +96,11 @@ def _solve_damped(H: torch.Tensor, g: torch.Tensor, lam: torch.Tensor) -> torch.
 def _normal_equations_for(prob: PoseProblem, config: SolverConfig):
     """The torch normal equations, or the compiled loop of ``vo.solver_kernels`` when
     ``config.kernel`` asks for it and the problem is on the CPU without gradients."""
-    kernel = getattr(config, "kernel", "torch")
+    kernel = config.kernel
     if kernel == "torch":
         return normal_equations
+    if kernel not in ("compiled", "auto"):
+        raise ValueError(f"unknown solver.kernel '{kernel}' (torch, compiled, auto)")
     from vo import solver_kernels
 
     tensors = (prob.points_cur, prob.target_px, prob.points_ref, prob.w2d, prob.w3d)
@@ -106,8 +108,6 @@ def _normal_equations_for(prob: PoseProblem, config: SolverConfig):
               and not any(t.requires_grad for t in tensors))
     if kernel == "compiled" and not usable:
         raise ValueError("solver.kernel=compiled needs numba and a CPU problem without gradients")
-    if kernel not in ("compiled", "auto"):
-        raise ValueError(f"unknown solver.kernel '{kernel}' (torch, compiled, auto)")
     return solver_kernels.normal_equations_compiled if usable else normal_equations
 
 

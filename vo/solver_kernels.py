@@ -9,13 +9,13 @@ use and cached on disk.
 """
 from __future__ import annotations
 
+import functools
 import importlib.util
 
 import numpy as np
 import torch
 
 AVAILABLE = importlib.util.find_spec("numba") is not None
-_compiled = None
 
 
 def _normal_equations_loop(T, pc, tgt, pr, w2, w3, K, s2, s3, H, g, cost):
@@ -100,20 +100,23 @@ def _normal_equations_loop(T, pc, tgt, pr, w2, w3, K, s2, s3, H, g, cost):
         cost[b] = c
 
 
+@functools.lru_cache(maxsize=None)
+def _kernel():
+    """The loop compiled by numba on first use (importing this module does not load numba)."""
+    import numba
+
+    return numba.njit(cache=True, nogil=True, error_model="numpy")(_normal_equations_loop)
+
+
 def normal_equations_compiled(T: torch.Tensor, prob) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(H, g, cost)`` of ``vo.solver.normal_equations`` for a CPU problem without gradients:
     ``H`` ``(B, 6, 6)``, ``g`` ``(B, 6)``, ``cost`` ``(B,)``, float64."""
-    global _compiled
-    if _compiled is None:
-        import numba
-
-        _compiled = numba.njit(cache=True, nogil=True, error_model="numpy")(_normal_equations_loop)
     B = prob.w2d.shape[0]
     H = np.empty((B, 6, 6))
     g = np.empty((B, 6))
     cost = np.empty(B)
     arr = lambda t: np.ascontiguousarray(t.detach().numpy())  # noqa: E731
-    _compiled(T.detach().double().numpy(), arr(prob.points_cur), arr(prob.target_px), arr(prob.points_ref),
+    _kernel()(T.detach().double().numpy(), arr(prob.points_cur), arr(prob.target_px), arr(prob.points_ref),
               arr(prob.w2d), arr(prob.w3d), np.ascontiguousarray(prob.K.detach().double().expand(B, 3, 3).numpy()),
               float(prob.s2), float(prob.s3), H, g, cost)
     return torch.from_numpy(H), torch.from_numpy(g), torch.from_numpy(cost)
