@@ -72,6 +72,12 @@ class TrackingConfig:
             correspondence backend whose temporal and stereo flow are one model (RAFT), the
             view is made in the main thread. The per-stage ``stereo`` time is then spent in the
             thread and ``read`` is what the main thread waited for.
+        flow_ahead: with ``stereo_ahead``, the read-ahead thread also computes the next frame's
+            temporal flow against the frame before it, wherever tracking will flow against the
+            previous frame (frame2frame; frame2model with ``flow_reference`` ``last_frame`` or
+            ``chained``; ``poses: groundtruth`` with a learned w3D): it depends on the two
+            frames alone. Same results either way (the flow is taken only when the reference
+            is that frame); its time is the ``flow_ahead`` stage, spent in the thread.
     """
 
     mode: str = "frame2frame"
@@ -84,6 +90,7 @@ class TrackingConfig:
     export_map: bool = False
     poses: str = "estimated"
     stereo_ahead: bool = True
+    flow_ahead: bool = True
 
 
 @dataclass

@@ -156,6 +156,7 @@ class Pipeline:
         self.fallbacks = 0
         self.exposure_level: Optional[float] = None     # the map's exposure: the first fused frame's
         self.velocity = np.eye(4)   # the last tracked relative motion: solver.init=constant_velocity's start
+        self._ahead_view: Optional[View] = None   # the read-ahead thread's last view (tracking.flow_ahead)
 
     # --------------------------------------------------------------------------------------
     def _initial_rect_pose(self) -> np.ndarray:
@@ -291,12 +292,31 @@ class Pipeline:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         return max(1, cores - 1)
 
+    def _flow_ahead(self) -> bool:
+        """Whether the read-ahead thread also computes the temporal flow against the previous
+        frame (``tracking.flow_ahead``): only where tracking flows against the previous frame."""
+        tc = self.config.tracking
+        return (tc.flow_ahead and self._stereo_ahead() and self.odometry.can_flow_ahead()
+                and (self.learned_fusion_weight if self.gt_poses_only
+                     else tc.mode != "frame2model" or self.flow_against_last_frame))
+
     def _read_view(self, k: int) -> tuple[StereoFrame, Optional[View], dict]:
         """Frame ``k`` and, with ``tracking.stereo_ahead``, its view and the view's timings (the
-        read-ahead thread runs this). Raises what reading the frame raises."""
+        read-ahead thread runs this, for one frame after another). With ``tracking.flow_ahead``
+        the view also carries its temporal flow against the view this thread made before (the
+        previous frame's, unless that one could not be read); tracking takes it only if that
+        view is its reference. Raises what reading the frame raises."""
         frame = self.dataset.frame(k)
         timings: dict = {}
-        return frame, (self._make_view(frame, timings) if self._stereo_ahead() else None), timings
+        if not self._stereo_ahead():
+            return frame, None, timings
+        view = self._make_view(frame, timings)
+        previous, self._ahead_view = self._ahead_view, view
+        if previous is not None and self._flow_ahead():
+            t0 = time.perf_counter()
+            self.odometry.flow_ahead(view, previous)
+            timings["flow_ahead"] = (time.perf_counter() - t0) * 1000.0
+        return frame, view, timings
 
     def _make_view(self, frame: StereoFrame, timings: dict) -> View:
         """Stereo depth (or the ground-truth depth of ``depth.source: groundtruth``) of ``frame``."""

@@ -74,3 +74,65 @@ def test_stereo_ahead_gives_the_same_run_in_another_thread(synth_dir, tmp_path):
     pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / "auto")
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     assert pipe._torch_threads() == max(1, cores - 1)
+
+
+@pytest.mark.parametrize("mode", ["frame2frame", "chained"])
+def test_flow_ahead_gives_the_same_run_and_leaves_the_main_thread_no_flow(synth_dir, tmp_path, mode):
+    """``tracking.flow_ahead``: the read-ahead thread also computes each frame's temporal flow
+    against the previous frame, with its own estimator; the trajectory is the same bit for bit
+    and the main thread computes no flow against the previous frame (frame2frame; frame2model
+    chained through the last frame still flows the last frame into the model view itself)."""
+    import numpy as np
+
+    from slam.config import load_config
+    from slam.datasets import open_dataset
+    from slam.pipeline import Pipeline
+
+    data = synth_dir("rigid", 6, (160, 128))
+    extra = [] if mode == "frame2frame" else ["tracking.mode=frame2model", "tracking.flow_reference=chained"]
+    poses, main_thread_pairs = {}, {}
+    for ahead in (True, False):
+        cfg = load_config(None, [*extra, f"tracking.flow_ahead={str(ahead).lower()}", "threads=1"])
+        pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / f"{mode}_{ahead}")
+        pair_flow = pipe.odometry._pair_flow
+        calls = []
+
+        def spy(estimator, cur, against):
+            calls.append(threading.get_ident())
+            return pair_flow(estimator, cur, against)
+
+        pipe.odometry._pair_flow = spy
+        result = pipe.run(progress=False)
+        assert not any(r.failed for r in result.records)
+        poses[ahead] = np.stack([r.pose for r in result.records])
+        main_thread_pairs[ahead] = calls.count(threading.get_ident())
+        assert ("flow_ahead" in pipe.timings) == ahead
+    np.testing.assert_array_equal(poses[True], poses[False])
+    assert main_thread_pairs == {True: 0, False: 5}
+
+
+def test_flow_ahead_is_taken_only_against_the_view_it_was_computed_for(synth_dir):
+    """A view whose look-ahead flow went against another view than its reference (the previous
+    frame failed) computes its flow anew: the same pose as without any look-ahead."""
+    import numpy as np
+
+    from slam.config import load_config
+    from slam.datasets import open_dataset
+    from vo.odometry import StereoOdometry
+
+    data = synth_dir("rigid", 6, (160, 128))
+    cfg = load_config(None, [])
+    dataset = open_dataset(data, cfg.data)
+    odo = StereoOdometry(dataset.camera, cfg.vo())
+    frames = [dataset.frame(k) for k in range(3)]
+    views = lambda: [odo.make_view(f.left, f.right, f.mask, specular=f.specular) for f in frames]  # noqa: E731
+    a, b, c = views()
+    plain = odo.track(c, a).relative
+    a, b, c = views()
+    odo.flow_ahead(c, b)
+    assert c.flow_ahead is not None
+    np.testing.assert_array_equal(odo.track(c, a).relative, plain)
+    assert c.flow_ahead is None          # taken (or dropped) once
+    a, b, c = views()
+    odo.flow_ahead(c, a)
+    np.testing.assert_array_equal(odo.track(c, a).relative, plain)

@@ -8,6 +8,7 @@ temporal flow, residuals, weight maps, NLLS. ``register`` is the frame2frame loo
 from __future__ import annotations
 
 import time
+import weakref
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -57,6 +58,9 @@ class View:
         flow_input: the image and grey image with the masked pixels inpainted, kept once
             computed (:meth:`StereoOdometry._flow_input`: a frame is flowed against a model
             view in its tracking pass, its refinement passes and, chained, as the last frame).
+        flow_ahead: the temporal flow of this view against an earlier real view, computed
+            before it was needed (:meth:`StereoOdometry.flow_ahead`): a weak reference to that
+            view, the flow and the forward-backward mask; taken once by the tracking that uses it.
     """
 
     image: torch.Tensor
@@ -68,6 +72,7 @@ class View:
     masked: np.ndarray | None = None
     rendered: bool = False
     flow_input: tuple[torch.Tensor, np.ndarray] | None = field(default=None, repr=False)
+    flow_ahead: tuple[weakref.ref, torch.Tensor, torch.Tensor | None] | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -134,6 +139,7 @@ class StereoOdometry:
             self.weight_networks = weight_networks.to(self.device).eval()
         elif config.weights.mode != "constant":
             raise ValueError(f"unknown weights.mode '{config.weights.mode}' (learned, constant)")
+        self._ahead_flow_estimator = None   # the look-ahead thread's own temporal flow (flow_ahead)
         self.reference: View | None = None
         self.pose = np.eye(4)  # T_wc of the rectified left camera, mm
         self.previous_relative = np.eye(4)
@@ -356,18 +362,45 @@ class StereoOdometry:
                                              need_image=not isinstance(self.temporal_flow, DisFlow))
         return view.flow_input
 
+    def _pair_flow(self, estimator, cur: View, against: View) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The temporal flow ``cur -> against`` and, with ``correspondence.fb_check_px``, the
+        ``(1, 1, H, W)`` bool mask of flows that passed the forward-backward check (else None)."""
+        cur_img, cur_gray = self._flow_input(cur, against=against)
+        flow = self._flow(estimator, cur_img, cur_gray, against.image, against.gray)
+        fb_ok = None
+        if self.config.correspondence.fb_check_px > 0:
+            back = self._flow(estimator, against.image, against.gray, cur_img, cur_gray)
+            fb_ok = flow_consistency(flow, back, self.config.correspondence.fb_check_px)
+        return flow, fb_ok
+
+    def can_flow_ahead(self) -> bool:
+        """Whether :meth:`flow_ahead` can run in another thread (a classical backend: a second
+        estimator of the same settings; one RAFT model is not shared between threads)."""
+        return self.config.correspondence.backend == "dis"
+
+    def flow_ahead(self, cur: View, against: View) -> None:
+        """Compute the temporal flow ``cur -> against`` now, with an estimator of its own (safe in
+        a read-ahead thread while :meth:`track` runs in another), and keep it on ``cur``: a
+        later :meth:`track` whose flow goes against ``against`` takes it instead of computing it
+        (same settings, same inputs: the same flow bit for bit). Both must be real frames."""
+        if cur.rendered or against.rendered:
+            raise ValueError("flow_ahead: only between real frames")
+        if self._ahead_flow_estimator is None:
+            self._ahead_flow_estimator = make_flow_estimators(self.config.correspondence, self.device)[0]
+        flow, fb_ok = self._pair_flow(self._ahead_flow_estimator, cur, against)
+        cur.flow_ahead = (weakref.ref(against), flow, fb_ok)
+
     def _correspondences(self, cur: View, ref: View, flow_ref: View | None,
                          chain_gain: float) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The temporal flow ``cur -> ref`` (through ``flow_ref``, see :meth:`track`) and the
         ``(1, 1, H, W)`` bool mask of flows that passed the checks (None: no check ran)."""
         chain = chain_gain > 0 and flow_ref is not None and flow_ref is not ref
         flow_ref = flow_ref or ref
-        cur_img, cur_gray = self._flow_input(cur, against=flow_ref)
-        flow = self._flow(self.temporal_flow, cur_img, cur_gray, flow_ref.image, flow_ref.gray)
-        fb_ok = None
-        if self.config.correspondence.fb_check_px > 0:
-            back = self._flow(self.temporal_flow, flow_ref.image, flow_ref.gray, cur_img, cur_gray)
-            fb_ok = flow_consistency(flow, back, self.config.correspondence.fb_check_px)
+        ahead, cur.flow_ahead = cur.flow_ahead, None
+        if ahead is not None and ahead[0]() is flow_ref:
+            flow, fb_ok = ahead[1], ahead[2]
+        else:
+            flow, fb_ok = self._pair_flow(self.temporal_flow, cur, flow_ref)
         if chain:
             last_img, last_gray = self._flow_input(flow_ref, against=ref)
             to_ref = self._flow(self.temporal_flow, last_img, last_gray, ref.image, ref.gray)

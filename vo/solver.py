@@ -8,7 +8,7 @@ solved in float64 whatever the data type.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -23,7 +23,8 @@ class SolverResult:
 
     Attributes:
         T: ``(B, 4, 4)`` optimal transforms (current camera -> reference camera, normalised units).
-        p: ``(B, 6)`` their tangent vectors.
+        p: ``(B, 6)`` their tangent vectors (the logarithm is taken when first asked for: the
+            declarative layer needs it, tracking does not).
         cost: ``(B,)`` final objective.
         iterations: iterations run.
         converged: ``(B,)`` bool, the step fell below the tolerance.
@@ -31,11 +32,17 @@ class SolverResult:
     """
 
     T: torch.Tensor
-    p: torch.Tensor
     cost: torch.Tensor
     iterations: int
     converged: torch.Tensor
     grad_norm: torch.Tensor
+    tangent: torch.Tensor | None = field(default=None, repr=False)
+
+    @property
+    def p(self) -> torch.Tensor:
+        if self.tangent is None:
+            self.tangent = se3_log(self.T.double()).to(self.T.dtype)
+        return self.tangent
 
 
 def _jacobian_2d_rows(Y: torch.Tensor, prob: PoseProblem) -> tuple[torch.Tensor, torch.Tensor]:
@@ -152,8 +159,7 @@ def solve_pose_lm(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor 
         cost_prev = cost
         if bool(converged.all()):
             break
-    return SolverResult(T=T, p=se3_log(T.double()).to(dtype), cost=cost, iterations=it,
-                        converged=converged, grad_norm=(2.0 * g).norm(dim=-1))
+    return SolverResult(T=T, cost=cost, iterations=it, converged=converged, grad_norm=(2.0 * g).norm(dim=-1))
 
 
 def solve_pose_lbfgs(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor | None = None) -> SolverResult:
@@ -177,9 +183,9 @@ def solve_pose_lbfgs(prob: PoseProblem, config: SolverConfig, T_init: torch.Tens
     p = p.detach()
     T = se3_exp(p)
     _, g, cost = normal_equations(T, prob64)
-    return SolverResult(T=T.to(prob.points_cur.dtype), p=p.to(prob.points_cur.dtype), cost=cost,
-                        iterations=int(state.get("n_iter", 0)),
-                        converged=torch.ones(B, dtype=torch.bool), grad_norm=(2.0 * g).norm(dim=-1))
+    return SolverResult(T=T.to(prob.points_cur.dtype), cost=cost, iterations=int(state.get("n_iter", 0)),
+                        converged=torch.ones(B, dtype=torch.bool), grad_norm=(2.0 * g).norm(dim=-1),
+                        tangent=p.to(prob.points_cur.dtype))
 
 
 def solve_pose(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor | None = None) -> SolverResult:
