@@ -157,6 +157,7 @@ class Pipeline:
         self.exposure_level: Optional[float] = None     # the map's exposure: the first fused frame's
         self.velocity = np.eye(4)   # the last tracked relative motion: solver.init=constant_velocity's start
         self._ahead_view: Optional[View] = None   # the read-ahead thread's last view (tracking.flow_ahead)
+        self._waiting_for = -1      # the frame the main thread waits for (-1: none; tracking.flow_ahead)
 
     # --------------------------------------------------------------------------------------
     def _initial_rect_pose(self) -> np.ndarray:
@@ -312,7 +313,7 @@ class Pipeline:
             return frame, None, timings
         view = self._make_view(frame, timings)
         previous, self._ahead_view = self._ahead_view, view
-        if previous is not None and self._flow_ahead():
+        if previous is not None and self._flow_ahead() and self._waiting_for != k:
             t0 = time.perf_counter()
             self.odometry.flow_ahead(view, previous)
             timings["flow_ahead"] = (time.perf_counter() - t0) * 1000.0
@@ -335,7 +336,11 @@ class Pipeline:
         """
         try:
             t0 = time.perf_counter()
-            frame, view, timings = reader.get(k)   # read ahead in a thread: the time spent waiting for it
+            self._waiting_for = k
+            try:
+                frame, view, timings = reader.get(k)   # read ahead in a thread: the time spent waiting for it
+            finally:
+                self._waiting_for = -1
             self._time("read", (time.perf_counter() - t0) * 1000.0)
         except DataError as err:
             return FrameRecord(index, stamp, pose_rect @ self.R1, True, f"unreadable frame: {err}"), pose_rect, last_view

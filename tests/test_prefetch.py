@@ -76,12 +76,16 @@ def test_stereo_ahead_gives_the_same_run_in_another_thread(synth_dir, tmp_path):
     assert pipe._torch_threads() == max(1, cores - 1)
 
 
-@pytest.mark.parametrize("mode", ["frame2frame", "chained"])
-def test_flow_ahead_gives_the_same_run_and_leaves_the_main_thread_no_flow(synth_dir, tmp_path, mode):
+@pytest.mark.parametrize("mode, slow", [("frame2frame", "track"), ("chained", "track"), ("frame2frame", "stereo")])
+def test_flow_ahead_gives_the_same_run_and_goes_to_the_idle_thread(synth_dir, tmp_path, mode, slow):
     """``tracking.flow_ahead``: the read-ahead thread also computes each frame's temporal flow
-    against the previous frame, with its own estimator; the trajectory is the same bit for bit
-    and the main thread computes no flow against the previous frame (frame2frame; frame2model
-    chained through the last frame still flows the last frame into the model view itself)."""
+    against the previous frame, with its own estimator, unless the main thread already waits for
+    that frame; the trajectory is the same bit for bit either way. With tracking the slower
+    stage the flows go to the read-ahead thread (all but the first pair's: frame 0 is not
+    tracked, so the main thread waits for frame 1); with stereo the slower one they stay in the
+    main thread. Frame2model chained through the last frame takes them too."""
+    import time
+
     import numpy as np
 
     from slam.config import load_config
@@ -90,25 +94,33 @@ def test_flow_ahead_gives_the_same_run_and_leaves_the_main_thread_no_flow(synth_
 
     data = synth_dir("rigid", 6, (160, 128))
     extra = [] if mode == "frame2frame" else ["tracking.mode=frame2model", "tracking.flow_reference=chained"]
-    poses, main_thread_pairs = {}, {}
+    poses, main_pairs, ahead_pairs = {}, {}, {}
     for ahead in (True, False):
         cfg = load_config(None, [*extra, f"tracking.flow_ahead={str(ahead).lower()}", "threads=1"])
-        pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / f"{mode}_{ahead}")
-        pair_flow = pipe.odometry._pair_flow
+        pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / f"{mode}_{slow}_{ahead}")
+        odo = pipe.odometry
+        pair_flow, slowed = odo._pair_flow, getattr(odo, "track" if slow == "track" else "make_view")
         calls = []
 
-        def spy(estimator, cur, against):
+        def spy_pairs(estimator, cur, against):
             calls.append(threading.get_ident())
             return pair_flow(estimator, cur, against)
 
-        pipe.odometry._pair_flow = spy
+        def spy_slow(*args, **kwargs):
+            time.sleep(0.3)
+            return slowed(*args, **kwargs)
+
+        odo._pair_flow = spy_pairs
+        setattr(odo, "track" if slow == "track" else "make_view", spy_slow)
         result = pipe.run(progress=False)
         assert not any(r.failed for r in result.records)
         poses[ahead] = np.stack([r.pose for r in result.records])
-        main_thread_pairs[ahead] = calls.count(threading.get_ident())
-        assert ("flow_ahead" in pipe.timings) == ahead
+        main_pairs[ahead] = calls.count(threading.get_ident())
+        ahead_pairs[ahead] = len(pipe.timings.get("flow_ahead", []))
     np.testing.assert_array_equal(poses[True], poses[False])
-    assert main_thread_pairs == {True: 0, False: 5}
+    assert main_pairs[False] == 5 and ahead_pairs[False] == 0
+    assert main_pairs[True] + ahead_pairs[True] == 5
+    assert (main_pairs[True], ahead_pairs[True]) == ((1, 4) if slow == "track" else (5, 0))
 
 
 def test_flow_ahead_is_taken_only_against_the_view_it_was_computed_for(synth_dir):
