@@ -54,21 +54,36 @@ def project(points: torch.Tensor, K: torch.Tensor, eps: float = 1e-6) -> torch.T
     return torch.cat([u, v], 1)
 
 
-def sample_by_flow(image: torch.Tensor, flow: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
-    """Sample ``image`` at ``x + flow(x)`` (bilinear, zero outside).
+def flow_grid(flow: torch.Tensor) -> torch.Tensor:
+    """The ``grid_sample`` grid (``align_corners=True``) of the points ``x + flow(x)``.
 
     Args:
-        image: ``(B, C, H, W)`` map in the target view.
-        flow: ``(B, 2, H, W)`` displacements (pixels) from the source grid into ``image``.
+        flow: ``(B, 2, H, W)`` displacements (pixels).
 
     Returns:
-        ``(B, C, H, W)`` sampled values on the source grid.
+        ``(B, H, W, 2)`` normalised coordinates; compute it once for several maps sampled by
+        the same flow (:func:`sample_by_flow`, :func:`sample_valid_by_flow` take it).
     """
     B, _, H, W = flow.shape
     coords = pixel_grid(H, W, flow.device, flow.dtype) + flow
     gx = 2.0 * coords[:, 0] / max(W - 1, 1) - 1.0
     gy = 2.0 * coords[:, 1] / max(H - 1, 1) - 1.0
-    grid = torch.stack([gx, gy], -1)
+    return torch.stack([gx, gy], -1)
+
+
+def sample_by_flow(image: torch.Tensor, flow: torch.Tensor, mode: str = "bilinear",
+                   grid: torch.Tensor | None = None) -> torch.Tensor:
+    """Sample ``image`` at ``x + flow(x)`` (bilinear, zero outside).
+
+    Args:
+        image: ``(B, C, H, W)`` map in the target view.
+        flow: ``(B, 2, H, W)`` displacements (pixels) from the source grid into ``image``.
+        grid: ``flow_grid(flow)`` if already computed.
+
+    Returns:
+        ``(B, C, H, W)`` sampled values on the source grid.
+    """
+    grid = flow_grid(flow) if grid is None else grid
     return F.grid_sample(image, grid, mode=mode, padding_mode="zeros", align_corners=True)
 
 
@@ -80,14 +95,15 @@ def lands_inside(flow: torch.Tensor) -> torch.Tensor:
             & (target[:, 1:2] >= 0) & (target[:, 1:2] <= H - 1))
 
 
-def sample_valid_by_flow(valid: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+def sample_valid_by_flow(valid: torch.Tensor, flow: torch.Tensor, grid: torch.Tensor | None = None) -> torch.Tensor:
     """Where bilinear sampling by ``flow`` draws only on valid pixels inside the image.
 
     Args:
         valid: ``(B, 1, H, W)`` bool validity of the target view.
         flow: ``(B, 2, H, W)``.
+        grid: ``flow_grid(flow)`` if already computed.
 
     Returns:
         ``(B, 1, H, W)`` bool.
     """
-    return sample_by_flow(valid.to(flow.dtype), flow) > 0.999
+    return sample_by_flow(valid.to(flow.dtype), flow, grid=grid) > 0.999

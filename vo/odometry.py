@@ -20,7 +20,7 @@ from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsCo
 from vo.correspondence import make_flow_estimators
 from vo.correspondence.dis import DisFlow, to_gray_u8
 from vo.depth import depth_from_parallax, flow_consistency, parallax_from_depth, vertical_parallax_ok
-from vo.geometry import backproject, lands_inside, pixel_grid, sample_by_flow, sample_valid_by_flow
+from vo.geometry import backproject, flow_grid, lands_inside, pixel_grid, sample_by_flow, sample_valid_by_flow
 from vo.lie import rotation_angle_deg
 from vo.residuals import PoseProblem, residuals
 from vo.solver import solve_pose
@@ -265,10 +265,11 @@ class StereoOdometry:
         valid = cur.valid & lands_inside(flow)
         if flow_valid is not None:
             valid &= flow_valid
+        grid = flow_grid(flow)      # one sampling grid for the three maps drawn by the flow
         if ref.matchable is not None:
-            valid &= sample_valid_by_flow(ref.matchable, flow)
-        valid3 = valid & sample_valid_by_flow(ref.valid, flow)
-        points_ref = sample_by_flow(backproject(ref.depth / dmax, self.K), flow)
+            valid &= sample_valid_by_flow(ref.matchable, flow, grid)
+        valid3 = valid & sample_valid_by_flow(ref.valid, flow, grid)
+        points_ref = sample_by_flow(backproject(ref.depth / dmax, self.K), flow, grid=grid)
         return target, valid, valid3, points_ref
 
     def track(self, cur: View, ref: View, flow_ref: View | None = None, T_init: np.ndarray | None = None,
