@@ -108,8 +108,10 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     correspondence: CorrespondenceConfig = field(default_factory=CorrespondenceConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
-    # the declarative layer needs a true minimum: no early stop on a flat cost, tight step tolerance
-    solver: SolverConfig = field(default_factory=lambda: SolverConfig(max_iters=25, step_tol=1e-12, cost_rtol=0.0))
+    # the declarative layer needs a true minimum: no early stop on a flat cost, tight step tolerance;
+    # torch's normal equations, with which the shipped checkpoints were trained (reproducible)
+    solver: SolverConfig = field(default_factory=lambda: SolverConfig(max_iters=25, step_tol=1e-12, cost_rtol=0.0,
+                                                                         kernel="torch"))
 
 
 def load_train_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:

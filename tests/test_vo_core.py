@@ -247,6 +247,22 @@ def test_robust_3d_step_ignores_a_non_rigid_patch(synth_dir):
     assert torch.allclose(w, torch.tensor([[1.0, 0.5, 0.2, 1 / 17]]), atol=1e-5)
 
 
+def test_closed_form_exponential_matches_kornia():
+    """``se3_exp_fast`` (the compiled solver's step) equals kornia's exponential to float64
+    rounding, on both sides of its series switch (1e-3 rad), at the identity and at large angles."""
+    from vo.lie import se3_exp_fast
+
+    g = torch.Generator().manual_seed(7)
+    for angle in (0.0, 1e-9, 1e-5, 9.9e-4, 1.01e-3, 0.05, 1.0, 3.0):
+        p = torch.randn(5, 6, dtype=torch.float64, generator=g)
+        p[:, 3:] *= angle / p[:, 3:].norm(dim=1, keepdim=True)
+        p[:, :3] *= 0.1
+        got, ref = se3_exp_fast(p), se3_exp(p)
+        assert got.dtype == torch.float64 and got.shape == (5, 4, 4)
+        assert torch.allclose(got, ref, rtol=0, atol=1e-13), (angle, (got - ref).abs().max())
+    assert se3_exp_fast(p.float()).dtype == torch.float32
+
+
 def test_compiled_normal_equations_match_torch():
     """``solver.kernel: compiled`` (one numba loop) builds the same Gauss-Newton system as the
     torch code: to float64 rounding on float64 data, to float32 rounding on float32 data; the
@@ -279,11 +295,12 @@ def test_compiled_normal_equations_match_torch():
         rot_err, trans_err = pose_errors(res.p, p_gt)
         assert rot_err < 1e-5 and trans_err < 1e-5, (rot_err, trans_err)
     noisy32 = prob.to(torch.float32)
-    a = solve_pose(noisy32, SolverConfig()).T
+    a = solve_pose(noisy32, SolverConfig(kernel="torch")).T
     b = solve_pose(noisy32, SolverConfig(kernel="compiled")).T
+    assert torch.equal(solve_pose(noisy32, SolverConfig()).T, b)           # auto, the default
     assert torch.allclose(a, b, atol=1e-5)
     with_grad = exact.with_weights(exact.w2d.clone().requires_grad_(True), exact.w3d)
     with pytest.raises(ValueError, match="compiled"):
         solve_pose(with_grad, SolverConfig(kernel="compiled"))
     auto = solve_pose(with_grad, SolverConfig(kernel="auto"))           # falls back to torch
-    assert torch.equal(auto.T, solve_pose(with_grad, SolverConfig()).T)
+    assert torch.equal(auto.T, solve_pose(with_grad, SolverConfig(kernel="torch")).T)

@@ -109,11 +109,12 @@ class SolverConfig:
             (frame2model, its refinement passes). Off by default: the fused model depth carries
             few of the outliers the step is for, and there it changed the ATE by 1 % for 20-35 %
             more frame time (README, "Robust 3D residuals").
-        kernel: how the LM normal equations are built: ``torch`` (vectorised, any device,
-            differentiable), ``compiled`` (one numba loop over the pixels, CPU without gradients:
-            4x faster per evaluation at 16k pixels, float64 sums, equal to ``torch`` to float32
-            rounding; ``vo.solver_kernels``) or ``auto`` (compiled where it can run, torch
-            elsewhere).
+        kernel: how the LM normal equations and the step are computed: ``torch`` (vectorised,
+            any device, differentiable; kornia's exponential), ``compiled`` (one numba loop over
+            the pixels and the closed-form exponential ``vo.lie.se3_exp_fast``, CPU without
+            gradients: 4x faster per evaluation at 16k pixels, float64 sums, equal to ``torch``
+            to float32 rounding; ``vo.solver_kernels``) or ``auto`` (the default: compiled where
+            it can run, torch elsewhere, e.g. where the declarative layer differentiates).
     """
 
     method: str = "lm"
@@ -128,7 +129,7 @@ class SolverConfig:
     max_pixels: int = 16384
     robust_3d_mm: float = 0.5
     robust_3d_model_mm: float = 0.0
-    kernel: str = "torch"
+    kernel: str = "auto"
 
 
 @dataclass

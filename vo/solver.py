@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import torch
 
 from vo.config import SolverConfig
-from vo.lie import se3_exp, se3_log, skew
+from vo.lie import se3_exp, se3_exp_fast, se3_log, skew
 from vo.residuals import PoseProblem, objective, objective_se3, residuals
 
 
@@ -100,12 +100,13 @@ def _solve_damped(H: torch.Tensor, g: torch.Tensor, lam: torch.Tensor) -> torch.
     return torch.linalg.solve(A, -g)
 
 
-def _normal_equations_for(prob: PoseProblem, config: SolverConfig):
-    """The torch normal equations, or the compiled loop of ``vo.solver_kernels`` when
-    ``config.kernel`` asks for it and the problem is on the CPU without gradients."""
+def _kernels_for(prob: PoseProblem, config: SolverConfig):
+    """The normal equations and the step's exponential: torch's (and kornia's), or with
+    ``config.kernel`` compiled/auto for a CPU problem without gradients the compiled loop of
+    ``vo.solver_kernels`` and the closed-form :func:`vo.lie.se3_exp_fast`."""
     kernel = config.kernel
     if kernel == "torch":
-        return normal_equations
+        return normal_equations, se3_exp
     if kernel not in ("compiled", "auto"):
         raise ValueError(f"unknown solver.kernel '{kernel}' (torch, compiled, auto)")
     from vo import solver_kernels
@@ -115,7 +116,7 @@ def _normal_equations_for(prob: PoseProblem, config: SolverConfig):
               and not any(t.requires_grad for t in tensors))
     if kernel == "compiled" and not usable:
         raise ValueError("solver.kernel=compiled needs numba and a CPU problem without gradients")
-    return solver_kernels.normal_equations_compiled if usable else normal_equations
+    return (solver_kernels.normal_equations_compiled, se3_exp_fast) if usable else (normal_equations, se3_exp)
 
 
 def solve_pose_lm(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor | None = None,
@@ -132,7 +133,7 @@ def solve_pose_lm(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor 
     T = torch.eye(4, dtype=dtype, device=device).repeat(B, 1, 1) if T_init is None else T_init.to(dtype).clone()
     lam = torch.full((B,), 1e-4 if damping else 0.0, dtype=torch.float64, device=device)
     converged = torch.zeros(B, dtype=torch.bool, device=device)
-    normal_equations = _normal_equations_for(prob, config)
+    normal_equations, exp = _kernels_for(prob, config)
     H, g, cost = normal_equations(T, prob)
     cost_prev = cost
     accepted_before = torch.ones(B, dtype=torch.bool, device=device)
@@ -140,7 +141,7 @@ def solve_pose_lm(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor 
     for it in range(1, config.max_iters + 1):
         d = _solve_damped(H, g, lam)
         d = torch.where(converged[:, None], torch.zeros_like(d), d)
-        T_new = se3_exp(d.to(dtype)) @ T
+        T_new = exp(d.to(dtype)) @ T
         H_new, g_new, cost_new = normal_equations(T_new, prob)
         accept = (cost_new <= cost) | (not damping)
         accept = accept & ~converged
