@@ -251,6 +251,7 @@ class Pipeline:
         n = len(self.dataset)
         writer = TumStreamWriter(self.out_dir / "trajectory.txt")
         bar = tqdm(total=n, unit="frame", disable=not progress, dynamic_ncols=True, leave=False)
+        self._ahead_view = None
         reader = Prefetcher(self._read_view, n)
         threads_before = torch.get_num_threads()
         torch.set_num_threads(self._torch_threads())
