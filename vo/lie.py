@@ -28,7 +28,7 @@ def se3_exp(p: torch.Tensor) -> torch.Tensor:
 def se3_exp_fast(p: torch.Tensor) -> torch.Tensor:
     """:func:`se3_exp` in closed form (Rodrigues' formula and the left Jacobian, Taylor series
     below 1e-3 rad) on the CPU in float64, without gradients: the solver's step, where kornia's
-    version costs ~2 ms a call in its checks and wrappers (``solver.kernel`` compiled).
+    version costs 1-2 ms a call in its checks and wrappers (``solver.kernel`` compiled, auto).
 
     Args:
         p: ``(B, 6)`` tangent vectors (translation first), no gradient.
