@@ -54,18 +54,19 @@ def project(points: torch.Tensor, K: torch.Tensor, eps: float = 1e-6) -> torch.T
     return torch.cat([u, v], 1)
 
 
-def flow_grid(flow: torch.Tensor) -> torch.Tensor:
+def flow_grid(flow: torch.Tensor, target: torch.Tensor | None = None) -> torch.Tensor:
     """The ``grid_sample`` grid (``align_corners=True``) of the points ``x + flow(x)``.
 
     Args:
         flow: ``(B, 2, H, W)`` displacements (pixels).
+        target: ``pixel_grid + flow`` if already computed.
 
     Returns:
         ``(B, H, W, 2)`` normalised coordinates; compute it once for several maps sampled by
         the same flow (:func:`sample_by_flow`, :func:`sample_valid_by_flow` take it).
     """
     B, _, H, W = flow.shape
-    coords = pixel_grid(H, W, flow.device, flow.dtype) + flow
+    coords = pixel_grid(H, W, flow.device, flow.dtype) + flow if target is None else target
     gx = 2.0 * coords[:, 0] / max(W - 1, 1) - 1.0
     gy = 2.0 * coords[:, 1] / max(H - 1, 1) - 1.0
     return torch.stack([gx, gy], -1)
@@ -87,10 +88,12 @@ def sample_by_flow(image: torch.Tensor, flow: torch.Tensor, mode: str = "bilinea
     return F.grid_sample(image, grid, mode=mode, padding_mode="zeros", align_corners=True)
 
 
-def lands_inside(flow: torch.Tensor) -> torch.Tensor:
-    """``(B, 1, H, W)`` bool: where ``x + flow(x)`` lies inside the ``H x W`` image (pixel centres)."""
+def lands_inside(flow: torch.Tensor, target: torch.Tensor | None = None) -> torch.Tensor:
+    """``(B, 1, H, W)`` bool: where ``x + flow(x)`` lies inside the ``H x W`` image (pixel centres);
+    ``target``: ``pixel_grid + flow`` if already computed."""
     _, _, H, W = flow.shape
-    target = pixel_grid(H, W, flow.device, flow.dtype) + flow
+    if target is None:
+        target = pixel_grid(H, W, flow.device, flow.dtype) + flow
     return ((target[:, 0:1] >= 0) & (target[:, 0:1] <= W - 1)
             & (target[:, 1:2] >= 0) & (target[:, 1:2] <= H - 1))
 

@@ -262,10 +262,10 @@ class StereoOdometry:
         _, _, H, W = flow.shape
         dmax = self.config.depth.max_depth_mm
         target = pixel_grid(H, W, flow.device, flow.dtype) + flow
-        valid = cur.valid & lands_inside(flow)
+        valid = cur.valid & lands_inside(flow, target)
         if flow_valid is not None:
             valid &= flow_valid
-        grid = flow_grid(flow)      # one sampling grid for the three maps drawn by the flow
+        grid = flow_grid(flow, target)      # one sampling grid for the three maps drawn by the flow
         if ref.matchable is not None:
             valid &= sample_valid_by_flow(ref.matchable, flow, grid)
         valid3 = valid & sample_valid_by_flow(ref.valid, flow, grid)
