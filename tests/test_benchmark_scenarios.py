@@ -37,15 +37,32 @@ def test_table_has_per_scenario_mean_and_both_averages(tmp_path, monkeypatch, ca
     assert cells[2] == f"{np.mean(scan):.2f} ± {np.std(scan):.2f}"
     assert cells[3] == f"{np.mean(allv):.2f} ± {np.std(allv):.2f}"
     assert cells[4] == f"{np.mean(means):.2f} ± {np.std(means):.2f}"
-    # the weight check: breathing sequences only (scanning is not in it), learned 2D&3D only
-    check = [line for line in table.splitlines() if line.startswith("| breathing s")]
-    assert [line.split("|")[1].strip() for line in check] == ["breathing s5", "breathing s6"]
+    # the weight check: breathing sequences only (scanning is not in it), learned methods only
+    check = [line for line in table.splitlines() if line.startswith("| learned 2D&3D | breathing s")]
+    assert [line.split("|")[2].strip() for line in check] == ["breathing s5", "breathing s6"]
     for r in results:
         if r["method"] == "learned 2D&3D" and r["scenario"] == "breathing":
             w = r["w3d"]
             assert 0 < w["fraction_moving"] < 1
             assert 0 < w["moving"] < 1 and 0 < w["still"] < 1 and 0 < w["w2d_moving"] < 1 and 0 < w["w2d_still"] < 1
-            line = next(line for line in check if line.startswith(f"| breathing s{r['seed']} "))
+            line = next(line for line in check if line.startswith(f"| learned 2D&3D | breathing s{r['seed']} "))
             assert line.endswith(f"| {w['moving'] / w['still']:.2f} | {w['w2d_moving'] / w['w2d_still']:.2f} |")
         else:
             assert r["method"] != "w = 1" or r["w3d"] is None
+
+
+def test_weight_check_lists_every_learned_method():
+    def stats(moving, still, w2m=None, w2s=None):
+        return {"moving": moving, "still": still, "w2d_moving": w2m, "w2d_still": w2s, "fraction_moving": 0.5}
+
+    results = [
+        {"scenario": "breathing", "seed": 1, "method": "learned 3D", "w3d": stats(0.02, 0.04)},
+        {"scenario": "breathing", "seed": 1, "method": "learned 2D&3D", "w3d": stats(0.01, 0.02, 0.3, 0.6)},
+        {"scenario": "breathing", "seed": 1, "method": "learned 2D", "w3d": stats(None, None, 0.45, 0.5)},
+        {"scenario": "scanning", "seed": 1, "method": "learned 2D&3D", "w3d": stats(0.01, 0.01, 0.5, 0.5)},
+        {"scenario": "breathing", "seed": 1, "method": "w = 1", "w3d": None},
+    ]
+    rows = B.weight_check(results).splitlines()[2:]
+    assert rows == ["| learned 2D&3D | breathing s1 | 0.50 | 0.0100 | 0.0200 | 0.50 | 0.50 |",
+                    "| learned 3D | breathing s1 | 0.50 | 0.0200 | 0.0400 | 0.50 | - |",
+                    "| learned 2D | breathing s1 | 0.50 | - | - | - | 0.90 |"]

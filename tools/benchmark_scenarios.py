@@ -84,7 +84,7 @@ def run_one(job: dict) -> dict:
         overrides.append(f"weights.checkpoint={Path(job['checkpoints']) / f'weights_{residuals}.pt'}")
     # one torch thread per worker process (the workers share the cores)
     cfg = load_config(None, [*overrides, "logging.progress=false", "threads=1", *job["extra"]])
-    stats = WeightStats() if job["method"] == "learned 2D&3D" else None
+    stats = WeightStats() if job["method"].startswith("learned") else None
     dataset = open_dataset(data, cfg.data)
     result = Pipeline(cfg, dataset, Path(job["out"]), logger=stats).run(progress=False)
     return {**{k: job[k] for k in ("scenario", "seed", "method")}, "ate_rmse_mm": result.metrics["ate_rmse_mm"],
@@ -166,24 +166,29 @@ def format_table(results: list[dict], scenarios: list[str], methods: list[str], 
 
 
 def weight_check(results: list[dict]) -> str:
-    """One row per breathing / deforming sequence (each sequence once, in scenario and seed order)."""
+    """One row per learned method and breathing / deforming sequence (the 2D&3D method first, then
+    scenario and seed order); a method without a 3D (2D) residual shows "-" for its w3D (w2D)."""
+    order = {m: i for i, m in enumerate(["learned 2D&3D", "learned 3D", "learned 2D"])}
     rows = {}
     for r in results:
-        if r["w3d"] and r["scenario"] in ("breathing", "deforming") and r["w3d"]["moving"] is not None:
-            rows[(r["scenario"], r["seed"])] = r["w3d"]
+        if r.get("w3d") and r["scenario"] in ("breathing", "deforming"):
+            rows[(order.get(r["method"], 9), r["method"], r["scenario"], r["seed"])] = r["w3d"]
     lines = []
-    for (scenario, seed), w in sorted(rows.items()):
-        ratio = w["moving"] / max(w["still"], 1e-12)
+    for (_, method, scenario, seed), w in sorted(rows.items()):
+        ratio = "-"
+        if w.get("moving") is not None and w.get("still"):
+            ratio = f"{w['moving'] / w['still']:.2f}"
         frac = w.get("fraction_moving")
         frac = f"{frac:.2f}" if frac is not None else "-"
         w2 = "-"
         if w.get("w2d_moving") is not None and w.get("w2d_still"):
             w2 = f"{w['w2d_moving'] / w['w2d_still']:.2f}"
-        lines.append(f"| {scenario} s{seed} | {frac} | {w['moving']:.4f} | {w['still']:.4f} | {ratio:.2f} | {w2} |")
+        m3 = f"{w['moving']:.4f} | {w['still']:.4f}" if w.get("moving") is not None else "- | -"
+        lines.append(f"| {method} | {scenario} s{seed} | {frac} | {m3} | {ratio} | {w2} |")
     if not lines:
         return ""
-    return "\n".join(["| sequence | share of pixels non-rigid > 0.5 mm | mean w3D, non-rigid | mean w3D, other "
-                      "| ratio | w2D ratio |", "|---|---|---|---|---|---|", *lines])
+    return "\n".join(["| method | sequence | share of pixels non-rigid > 0.5 mm | mean w3D, non-rigid | mean w3D, other "
+                      "| w3D ratio | w2D ratio |", "|---|---|---|---|---|---|---|", *lines])
 
 
 if __name__ == "__main__":
