@@ -210,7 +210,12 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
     def view(k):
         if k not in views:
             f = dataset.frame(k)
-            views[k] = odo.make_view(f.left, f.right, f.mask, specular=f.specular)
+            gt_depth = None
+            if cfg.depth.source == "groundtruth":   # the generator's exact depth (isolates the stereo's share)
+                if f.gt_depth is None:
+                    raise SlamError(f"{path}: depth.source=groundtruth needs ground-truth depth maps")
+                gt_depth = f.gt_depth
+            views[k] = odo.make_view(f.left, f.right, f.mask, gt_depth=gt_depth, specular=f.specular)
         return views[k]
 
     samples = []

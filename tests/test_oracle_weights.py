@@ -71,3 +71,14 @@ def test_oracle_tool_masks_moving_tissue_on_a_breathing_sequence(synth_dir):
         assert np.isfinite(r["pair_error_mm"]) and r["chained_ate_mm"] is not None
     # constant weights: w3D is the same on moving and still pixels
     assert abs(none["w3d_ratio_pair>0.005"] - 1.0) < 1e-6
+
+
+def test_detector_ratio_of_an_ideal_motion_detector():
+    tool = load_tool()
+    # 4 pixels displaced from rest (> 0.5 mm), 4 not; per-pair motion decides what the detector keeps
+    rest = np.array([1.0, 1.0, 1.0, 1.0, 0.1, 0.1, 0.1, 0.1])
+    motion = np.array([0.05, 0.05, 0.05, 0.0, 0.0, 0.0, 0.0, 0.05])
+    out = tool.detector_ratios(motion, rest, [0.01, 0.1])
+    assert out["detector_ratio_pair<=0.01"] == 0.25 / 0.75         # keeps 1 of 4 displaced, 3 of 4 others
+    assert out["detector_ratio_pair<=0.1"] == 1.0                  # keeps everything
+    assert tool.detector_ratios(motion, np.zeros(8), [0.01]) == {} # nothing displaced: no ratio

@@ -59,7 +59,12 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
         f = ds.frame(k)
         if "nonrigid_mm" not in f.extras:
             raise SystemExit(f"{data}: no nonrigid/ ground truth (write it with `slam synth`)")
-        views.append(odo.make_view(f.left, f.right, f.mask, specular=f.specular))
+        gt_depth = None
+        if cfg.depth.source == "groundtruth":
+            if f.gt_depth is None:
+                raise SystemExit(f"{data}: depth.source=groundtruth needs ground-truth depth maps")
+            gt_depth = f.gt_depth
+        views.append(odo.make_view(f.left, f.right, f.mask, gt_depth=gt_depth, specular=f.specular))
         nonrigid.append(torch.from_numpy(f.extras["nonrigid_mm"])[None, None].float())
     rows = []
     for gap in gaps:
@@ -95,6 +100,22 @@ def weight_ratios(stats: list, thresholds: list[float]) -> dict:
         if moving.any() and (~moving).any():
             out[f"w3d_ratio_{name}"] = float(w3[moving].mean() / max(w3[~moving].mean(), 1e-12))
             out[f"share_{name}"] = float(moving.mean())
+    out.update(detector_ratios(motion, rest, thresholds))
+    return out
+
+
+def detector_ratios(motion, rest, thresholds: list[float]) -> dict:
+    """The issue's ratio (mean weight on pixels displaced from the rest shape by more than 0.5 mm
+    over the mean on the others) for an ideal detector of per-pair motion, weight ``1`` where the
+    tissue moved by at most ``t`` mm between the two frames and ``0`` elsewhere: how fine a motion
+    a weight map of one frame pair must tell apart to meet the check.  ``motion``, ``rest``:
+    1-D arrays of per-pair motion and displacement from the rest shape (mm)."""
+    displaced = rest > 0.5
+    out = {}
+    if displaced.any() and (~displaced).any():
+        for t in thresholds:
+            kept = motion <= t
+            out[f"detector_ratio_pair<={t}"] = float(kept[displaced].mean() / max(kept[~displaced].mean(), 1e-12))
     return out
 
 
@@ -125,6 +146,14 @@ def main() -> None:
         if r["mask"] == "none":
             ratios.append(f"| {r['sequence']} | {r['gap']} | "
                           + " | ".join(f"{r[k]:.2f}" if k in r else "-" for k in ratio_keys) + " |")
+    detector_keys = sorted({k for r in rows for k in r if k.startswith("detector_ratio_")})
+    if detector_keys:
+        ratios += ["", "An ideal detector of per-pair motion (weight 0 where the tissue moved more than t "
+                   "between the frames), its ratio by displacement from the rest shape above 0.5 mm:", "",
+                   "| sequence | gap | " + " | ".join(k.removeprefix("detector_ratio_") for k in detector_keys) + " |",
+                   "|---" * (len(detector_keys) + 2) + "|"]
+        ratios += [f"| {r['sequence']} | {r['gap']} | " + " | ".join(f"{r[k]:.2f}" if k in r else "-" for k in detector_keys)
+                   + " |" for r in rows if r["mask"] == "none"]
     ratio_table = "\n".join(ratios)
     print("\nLearned w3D, mean on moving / mean on still pixels (moving: per-pair motion above a threshold, "
           "or displaced from the rest shape by more than 0.5 mm):\n")
