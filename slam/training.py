@@ -257,7 +257,11 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
         for k in [k for k in views if k < i]:
             del views[k]  # pairs are sorted by i: earlier views are not needed again
     cache.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(samples, cache)
+    # written aside and renamed: two trainings sharing the cache (2d3d and 2d side by side) must
+    # never read a half-written file
+    tmp = cache.with_name(f"{cache.name}.{os.getpid()}.tmp")
+    torch.save(samples, tmp)
+    tmp.replace(cache)
     return samples
 
 

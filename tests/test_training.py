@@ -103,5 +103,10 @@ def test_pair_samples_with_the_generators_depth(tmp_path):
             ok = s["valid3"]
             res.append((moved - s["points_ref"])[:, ok].norm(dim=0).median() * cfg.depth.max_depth_mm)
         errors[source] = float(torch.stack(res).median())
+        # the cache file is renamed into place (no half-written file for a second training to read)
+        again = build_pair_samples(data, cfg)
+        assert len(again) == len(samples) and torch.equal(again[0]["points_ref"], samples[0]["points_ref"])
+    assert len(list((tmp_path / "cache" / "pairs").glob("*.pt"))) == 2
+    assert not list((tmp_path / "cache").rglob("*.tmp"))
     assert errors["groundtruth"] < 0.1                           # mm: exact depth; what is left is the flow
     assert errors["stereo"] > 3 * errors["groundtruth"]            # 0.40 against 0.04 mm when written
