@@ -1,23 +1,14 @@
 """tools/stereo_noise.py: the stereo depth's error and its frame-to-frame change against the generator."""
 from __future__ import annotations
 
-import importlib.util
 import sys
 from pathlib import Path
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "stereo_noise.py"
-
-
-def load_tool():
-    spec = importlib.util.spec_from_file_location("stereo_noise", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["stereo_noise"] = module
-    spec.loader.exec_module(module)
-    return module
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+import stereo_noise as tool  # noqa: E402
 
 
 def test_stereo_noise_against_the_generators_depth(synth_dir):
-    tool = load_tool()
     data = synth_dir("breathing", 8)
     stereo = tool.sequence_noise(data, [], start=2, frames=6)
     exact = tool.sequence_noise(data, ["depth.source=groundtruth"], start=2, frames=6)
