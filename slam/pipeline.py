@@ -22,6 +22,7 @@ import torch
 from slam.config import SlamConfig, save_config
 from slam.datasets.base import StereoFrame
 from slam.errors import DataError, SlamError
+from slam.frame_view import frame_view
 from slam.prefetch import Prefetcher
 from slam.tum import TumStreamWriter
 from vo.odometry import StereoOdometry, TrackResult, View
@@ -322,11 +323,7 @@ class Pipeline:
 
     def _make_view(self, frame: StereoFrame, timings: dict) -> View:
         """Stereo depth (or the ground-truth depth of ``depth.source: groundtruth``) of ``frame``."""
-        use_gt_depth = self.config.depth.source == "groundtruth"
-        gt_depth = frame.gt_depth if use_gt_depth else None
-        if use_gt_depth and gt_depth is None:
-            raise SlamError(f"{self.dataset.path}: depth.source=groundtruth needs ground-truth depth maps (synthetic data)")
-        return self.odometry.make_view(frame.left, frame.right, frame.mask, gt_depth, timings, frame.specular)
+        return frame_view(self.odometry, frame, self.dataset.path, timings)
 
     def _step(self, k: int, index: int, stamp: float, last_view: Optional[View],
               pose_rect: np.ndarray, reader: Prefetcher) -> tuple[FrameRecord, np.ndarray, Optional[View]]:

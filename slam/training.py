@@ -29,6 +29,7 @@ import torch
 import yaml
 
 from slam.errors import ConfigError, SlamError
+from slam.frame_view import frame_view
 from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
 from vo.ddn import declarative_pose
 from vo.geometry import backproject
@@ -209,13 +210,7 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
 
     def view(k):
         if k not in views:
-            f = dataset.frame(k)
-            gt_depth = None
-            if cfg.depth.source == "groundtruth":   # the generator's exact depth (isolates the stereo's share)
-                if f.gt_depth is None:
-                    raise SlamError(f"{path}: depth.source=groundtruth needs ground-truth depth maps")
-                gt_depth = f.gt_depth
-            views[k] = odo.make_view(f.left, f.right, f.mask, gt_depth=gt_depth, specular=f.specular)
+            views[k] = frame_view(odo, dataset.frame(k), path)   # depth.source: stereo or the generator's
         return views[k]
 
     samples = []

@@ -35,6 +35,8 @@ def pair_motion(nonrigid_cur: torch.Tensor, nonrigid_ref: torch.Tensor, flow: to
 def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: list[float]) -> list[dict]:
     from slam.config import load_config
     from slam.datasets import open_dataset
+    from slam.errors import SlamError
+    from slam.frame_view import frame_view
     from slam.training import relative_rect_transform
     from vo.odometry import StereoOdometry
 
@@ -59,12 +61,10 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
         f = ds.frame(k)
         if "nonrigid_mm" not in f.extras:
             raise SystemExit(f"{data}: no nonrigid/ ground truth (write it with `slam synth`)")
-        gt_depth = None
-        if cfg.depth.source == "groundtruth":
-            if f.gt_depth is None:
-                raise SystemExit(f"{data}: depth.source=groundtruth needs ground-truth depth maps")
-            gt_depth = f.gt_depth
-        views.append(odo.make_view(f.left, f.right, f.mask, gt_depth=gt_depth, specular=f.specular))
+        try:
+            views.append(frame_view(odo, f, data))       # depth.source: stereo or the generator's
+        except SlamError as err:
+            raise SystemExit(str(err)) from None
         nonrigid.append(torch.from_numpy(f.extras["nonrigid_mm"])[None, None].float())
     rows = []
     for gap in gaps:

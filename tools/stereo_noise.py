@@ -25,6 +25,7 @@ def sequence_noise(data: Path, overrides: list[str], start: int, frames: int) ->
     """The statistics of one sequence over frames ``start .. start + frames - 1`` (see module doc)."""
     from slam.config import load_config
     from slam.datasets import open_dataset
+    from slam.frame_view import frame_view
     from vo.odometry import StereoOdometry
 
     cfg = load_config(None, ["logging.progress=false", *overrides])
@@ -41,8 +42,7 @@ def sequence_noise(data: Path, overrides: list[str], start: int, frames: int) ->
         if f.gt_depth is None:
             raise SystemExit(f"{data}: no ground-truth depth (a synthetic sequence from `slam synth` has it)")
         # depth.source=groundtruth gives the generator's depth to the view: a zero-noise reference
-        gt_depth = f.gt_depth if cfg.depth.source == "groundtruth" else None
-        depth = odo.make_view(f.left, f.right, f.mask, gt_depth=gt_depth, specular=f.specular).depth[0, 0].numpy()
+        depth = frame_view(odo, f, data).depth[0, 0].numpy()
         ok = (depth > 0) & (f.gt_depth > 0)
         err = np.where(ok, depth - f.gt_depth, np.nan)
         errors.append(err[ok])
