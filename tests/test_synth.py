@@ -77,6 +77,26 @@ def test_refuses_a_foreign_non_empty_folder(tmp_path):
         generate(tmp_path, "rigid", frames=1, size=(32, 24))
 
 
+def test_an_interrupted_run_can_be_rerun_into_its_folder(tmp_path, monkeypatch):
+    from slam.synth.writer import SequenceWriter
+
+    write = SequenceWriter.write
+
+    def write_then_stop(self, i, *args, **kwargs):
+        if i == 1:
+            raise KeyboardInterrupt
+        return write(self, i, *args, **kwargs)
+
+    monkeypatch.setattr(SequenceWriter, "write", write_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        generate(tmp_path / "seq", "rigid", frames=3, size=(32, 24), seed=1)
+    assert (tmp_path / "seq" / "video_frames" / "000000l.png").is_file()
+    monkeypatch.setattr(SequenceWriter, "write", write)
+    out = generate(tmp_path / "seq", "rigid", frames=3, size=(32, 24), seed=1)
+    assert json.loads((out / "synth.json").read_text())["frames"] == 3
+    assert len(list((out / "video_frames").glob("*l.png"))) == 3
+
+
 # -- layout ----------------------------------------------------------------------------------
 @pytest.mark.parametrize("scenario", SCENARIOS)
 def test_layout(sequences, scenario):

@@ -39,7 +39,8 @@ def to_uint16(values_mm: np.ndarray) -> np.ndarray:
 def prepare_out_dir(out_dir: Path) -> None:
     """Create ``out_dir``; remove frame files of an earlier synthetic sequence written there (so
     a shorter sequence does not leave stale frames). Refuses a non-empty folder that is not a
-    synthetic sequence."""
+    synthetic sequence. Marks the folder as one at once (a placeholder ``synth.json`` that the
+    finished sequence overwrites), so a run interrupted half-way can be rerun into it."""
     if out_dir.exists() and not out_dir.is_dir():
         raise DataError(f"{out_dir}: exists and is not a folder")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -55,6 +56,7 @@ def prepare_out_dir(out_dir: Path) -> None:
                 d.rmdir()
     for f in out_dir.glob("*.mp4"):
         f.unlink()
+    (out_dir / "synth.json").write_text(json.dumps({"generator": "slam.synth", "complete": False}) + "\n")
 
 
 def _imwrite(path: Path, img: np.ndarray) -> None:
