@@ -67,6 +67,9 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--size", default="640x512", help="WxH (default 640x512)")
     sy.add_argument("--seed", type=int, default=0)
     sy.add_argument("--raw", action="store_true", help="unrectified pair with lens distortion as one mp4 (StereoMIS raw layout)")
+    sy.add_argument("--breathing-follows-tissue", type=float, default=0.0, metavar="C",
+                    help="correlation 0-1 of the breathing amplitude with the tissue's look (red parenchyma "
+                         "breathes most); default 0: amplitude independent of the image")
 
     tr = sub.add_parser("train", help="train the weight networks end to end through the pose optimum (DDN)",
                         description="Train the weight networks on sequences with ground truth (configs/train.yaml).")
@@ -135,7 +138,7 @@ def cmd_synth(args) -> int:
     from slam.synth import generate
 
     out = generate(args.out, args.scenario, frames=args.frames, size=parse_size(args.size), seed=args.seed,
-                   raw=args.raw, progress=True)
+                   raw=args.raw, progress=True, breathing_follows_tissue=args.breathing_follows_tissue)
     print(f"wrote {args.frames} frames ({args.scenario}, seed {args.seed}) to {out}")
     return 0
 

@@ -57,6 +57,8 @@ class TrainDataConfig:
         moving_threshold_mm, moving_threshold_deg: a pair whose ground-truth motion exceeds either
             is "moving", else "static"; the two classes are balanced.
         pixels_per_pair: pose-problem pixels kept per pair.
+        breathing_follows_tissue: passed to the generator (correlation of the breathing amplitude
+            with the tissue's look; 0 = independent).
     """
 
     scenarios: list = field(default_factory=lambda: ["rigid", "breathing", "scanning", "deforming", "loop"])
@@ -71,6 +73,7 @@ class TrainDataConfig:
     moving_threshold_mm: float = 0.1
     moving_threshold_deg: float = 0.1
     pixels_per_pair: int = 4096
+    breathing_follows_tissue: float = 0.0
 
 
 @dataclass
@@ -144,11 +147,13 @@ def training_sequences(cfg: TrainConfig, progress: bool = True) -> list[Path]:
     paths = []
     for scenario in cfg.data.scenarios:
         for seed in cfg.data.seeds:
-            out = root / f"{scenario}_s{seed}_{cfg.data.width}x{cfg.data.height}_n{cfg.data.frames}"
+            follows = cfg.data.breathing_follows_tissue
+            tag = f"_ft{follows:g}" if follows else ""
+            out = root / f"{scenario}_s{seed}_{cfg.data.width}x{cfg.data.height}_n{cfg.data.frames}{tag}"
             if not (out / "groundtruth.txt").is_file():
                 log.info("generating %s", out)
                 generate(out, scenario, frames=cfg.data.frames, size=(cfg.data.width, cfg.data.height), seed=seed,
-                         progress=progress)
+                         progress=progress, breathing_follows_tissue=follows)
             paths.append(out)
     paths += [Path(p) for p in cfg.data.sequences]
     return paths
@@ -183,7 +188,9 @@ def sample_pairs(gt: np.ndarray, R1: np.ndarray, cfg: TrainDataConfig, rng: rand
 
 
 def _cache_key(cfg: TrainConfig, path: Path) -> str:
-    relevant = {"seq": str(path.resolve()), "data": asdict(cfg.data), "corr": asdict(cfg.correspondence),
+    data = asdict(cfg.data)
+    data.pop("breathing_follows_tissue")  # in the sequence's folder name already; keeps earlier caches valid
+    relevant = {"seq": str(path.resolve()), "data": data, "corr": asdict(cfg.correspondence),
                 "depth": asdict(cfg.depth), "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 1,
                 "inputs": INPUT_VERSION}
     return hashlib.sha1(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:12]

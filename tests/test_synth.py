@@ -161,6 +161,46 @@ def test_breathing_is_periodic_motion(sequences):
     assert 0.02 < np.median(change) < 3.0  # it moves, by millimetres at most in 0.2 s
 
 
+def _redness(rgb: np.ndarray) -> np.ndarray:
+    """Minus the green/red ratio of an sRGB image, blurred (red parenchyma high, pale and fat low)."""
+    rgb = rgb.astype(np.float32)
+    return cv2.GaussianBlur(-(rgb[..., 1] + 1) / (rgb[..., 0] + 1), (0, 0), 3.0)
+
+
+def test_breathing_amplitude_can_follow_the_tissue_look():
+    from slam.synth.deformation import make_breathing, tissue_look
+    from slam.synth.scene import make_scene
+
+    scene = make_scene(3)
+    look = tissue_look(scene)
+    c = slice(scene.geo.size // 2 - 280, scene.geo.size // 2 + 280)  # the +-70 mm the cameras see
+    corr = lambda a: np.corrcoef(a[c, c].ravel(), look[c, c].ravel())[0, 1]  # noqa: E731
+    independent, coupled = make_breathing(scene, 3), make_breathing(scene, 3, 0.8)
+    assert abs(corr(independent.amp)) < 0.3 and corr(coupled.amp) > 0.6
+    # same random draws: 0 is the earlier generator, the period and the phase are kept
+    assert np.array_equal(make_breathing(scene, 3, 0.0).amp, independent.amp)
+    assert (coupled.period_s, coupled.phase0) == (independent.period_s, independent.phase0)
+    assert coupled.amp.max() == pytest.approx(independent.amp.max(), rel=0.05)  # same peak amplitude
+    with pytest.raises(ValueError):
+        make_breathing(scene, 3, 1.5)
+
+
+def test_breathing_that_follows_the_tissue_is_visible_in_the_images(sequences, tmp_path):
+    """What a weight network can learn from: with the coupling, the tissue that looks red moves most."""
+    coupled = generate(tmp_path / "ft", "breathing", frames=FRAMES["breathing"], size=SIZE, seed=3,
+                       breathing_follows_tissue=0.8)
+    assert json.loads((coupled / "synth.json").read_text())["breathing_follows_tissue"] == 0.8
+    k = FRAMES["breathing"] - 1
+    corr = {}
+    for name, seq in (("independent", sequences["breathing"]), ("coupled", coupled)):
+        moved = cv2.imread(str(seq / "nonrigid" / f"{k:06d}l.png"), cv2.IMREAD_UNCHANGED).astype(np.float32)
+        red = _redness(_rgb(seq / "video_frames" / f"{k:06d}l.png"))
+        corr[name] = np.corrcoef(moved.ravel(), red.ravel())[0, 1]
+    assert abs(corr["independent"]) < 0.3 and corr["coupled"] > 0.5, corr
+    with pytest.raises(DataError):
+        generate(tmp_path / "bad", "breathing", frames=1, size=SIZE, breathing_follows_tissue=-0.1)
+
+
 def test_deforming_instrument_is_in_front(sequences):
     seq = sequences["deforming"]
     m = cv2.imread(str(seq / "masks" / "000003l.png"), cv2.IMREAD_UNCHANGED) == 0

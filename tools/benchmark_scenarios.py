@@ -77,7 +77,8 @@ def run_one(job: dict) -> dict:
 
     data = Path(job["data"])
     if not (data / "groundtruth.txt").is_file():
-        generate(data, job["scenario"], frames=job["frames"], size=tuple(job["size"]), seed=job["seed"])
+        generate(data, job["scenario"], frames=job["frames"], size=tuple(job["size"]), seed=job["seed"],
+                 breathing_follows_tissue=job["follows"])
     overrides = list(METHODS[job["method"]])
     if job.get("checkpoints") and "weights.mode=learned" in overrides:
         residuals = next(o.split("=", 1)[1] for o in overrides if o.startswith("weights.residuals="))
@@ -102,6 +103,9 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--out", default="runs/scenarios")
     ap.add_argument("--set", action="append", default=[])
+    ap.add_argument("--breathing-follows-tissue", type=float, default=0.0, metavar="C",
+                    help="generate the sequences with the breathing amplitude correlated C with the tissue's look "
+                         "(slam synth --breathing-follows-tissue)")
     ap.add_argument("--checkpoints", default=None,
                     help="folder with weights_{2d3d,2d,3d}.pt to use instead of the packaged checkpoints")
     ap.add_argument("--reuse", default=None,
@@ -115,17 +119,20 @@ def main() -> None:
     jobs = []
     for scenario in args.scenarios:
         for seed in args.seeds:
-            data = out / "data" / f"{scenario}_s{seed}_{args.size}_{args.frames}"
+            tag = f"_ft{args.breathing_follows_tissue:g}" if args.breathing_follows_tissue else ""
+            data = out / "data" / f"{scenario}_s{seed}_{args.size}_{args.frames}{tag}"
             for method in args.methods:
                 jobs.append({"scenario": scenario, "seed": seed, "method": method, "data": str(data),
-                             "frames": args.frames, "size": [w, h], "extra": args.set, "checkpoints": args.checkpoints,
+                             "frames": args.frames, "size": [w, h], "extra": args.set,
+                             "follows": args.breathing_follows_tissue, "checkpoints": args.checkpoints,
                              "out": str(out / "runs" / f"{scenario}_s{seed}_{method.replace(' ', '_').replace('&', 'and')}")})
     # generate each sequence once before the workers share it
     from slam.synth import generate
 
     for job in {j["data"]: j for j in jobs}.values():
         if not (Path(job["data"]) / "groundtruth.txt").is_file():
-            generate(job["data"], job["scenario"], frames=job["frames"], size=(w, h), seed=job["seed"])
+            generate(job["data"], job["scenario"], frames=job["frames"], size=(w, h), seed=job["seed"],
+                     breathing_follows_tissue=job["follows"])
     with ProcessPoolExecutor(args.workers) as pool:
         results = list(pool.map(run_one, jobs))
     methods = args.methods

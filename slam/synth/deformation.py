@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Optional
 
+import cv2
 import numpy as np
 
 from slam.synth.noise import fractal_noise, smoothstep
@@ -37,11 +38,36 @@ class Breathing:
         return np.float32(2 * np.pi * t / self.period_s + self.phase0) - np.float32(self.k[0]) * x - np.float32(self.k[1]) * y
 
 
-def make_breathing(scene: TissueScene, seed: int) -> Breathing:
-    """The breathing of ``seed``'s tissue (period 3-5 s, peak amplitude 1.5-3 mm)."""
+def tissue_look(scene: TissueScene, blur_mm: float = 3.0) -> np.ndarray:
+    """How red (parenchyma-like) the tissue looks at each height-field texel: ``(G, G)`` float32,
+    zero mean and unit std over the grid; positive where the albedo is red, negative where it is
+    pale or fatty (minus the green/red ratio of the albedo, blurred to the organ scale)."""
+    g = scene.geo
+    level = min(range(len(scene.albedo)), key=lambda k: abs(scene.tex_grid(k).res - g.res))
+    rgb = cv2.resize(scene.albedo[level], (g.size, g.size), interpolation=cv2.INTER_AREA).astype(np.float32)
+    look = -(rgb[..., 1] + 1.0) / (rgb[..., 0] + 1.0)
+    look = cv2.GaussianBlur(look, (0, 0), blur_mm / g.res, borderType=cv2.BORDER_REFLECT_101)
+    look -= look.mean()
+    return look / np.float32(max(float(look.std()), 1e-9))
+
+
+def make_breathing(scene: TissueScene, seed: int, follows_tissue: float = 0.0) -> Breathing:
+    """The breathing of ``seed``'s tissue (period 3-5 s, peak amplitude 1.5-3 mm).
+
+    ``follows_tissue`` in [0, 1] is the correlation of the amplitude map with how the tissue looks
+    (:func:`tissue_look`: red parenchyma breathes most, pale and fatty tissue least), as when
+    the view holds organs that move differently; 0 (the default) makes the amplitude independent
+    of the image. The random draws do not depend on it, so 0 gives the sequences of earlier
+    versions bit for bit.
+    """
+    if not 0.0 <= follows_tissue <= 1.0:
+        raise ValueError(f"follows_tissue must be in [0, 1], got {follows_tissue}")
     rng = np.random.default_rng([seed, 4])
     g = scene.geo
     field = fractal_noise(rng, g.size, [40 / g.res, 18 / g.res], [1.0, 0.4])
+    if follows_tissue > 0.0:
+        mixed = follows_tissue * tissue_look(scene) + np.sqrt(1.0 - follows_tissue ** 2) * field
+        field = (mixed / np.float32(max(float(mixed.std()), 1e-9))).astype(np.float32)
     amp_max = rng.uniform(1.5, 3.0)
     amp = (amp_max * (0.05 + 0.95 * smoothstep(-1.2, 1.0, field))).astype(np.float32)
     ay, ax = np.gradient(amp, g.res)

@@ -78,7 +78,8 @@ def _files_meaning(raw: bool, masks: bool, video: str | None) -> dict:
 
 
 def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = (640, 512), seed: int = 0,
-             raw: bool = False, fps: float = 25.0, progress: bool = False) -> Path:
+             raw: bool = False, fps: float = 25.0, progress: bool = False,
+             breathing_follows_tissue: float = 0.0) -> Path:
     """Render a synthetic stereo sequence with ground truth into ``out_dir``.
 
     Args:
@@ -91,6 +92,9 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
             pre-processed one.
         fps: frame rate (timestamps, breathing and instrument speeds are in seconds).
         progress: show a progress bar.
+        breathing_follows_tissue: correlation in [0, 1] of the breathing amplitude map with how the
+            tissue looks (red parenchyma breathes most; see ``make_breathing``); 0 keeps it
+            independent of the image.
 
     Returns:
         ``out_dir`` as a Path.
@@ -99,6 +103,9 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
         DataError: unknown scenario, bad size/frames/seed/fps, or an unwritable folder.
     """
     width, height = _check_args(scenario, frames, size, seed, fps)
+    follows = breathing_follows_tissue
+    if not (isinstance(follows, (int, float)) and 0.0 <= follows <= 1.0):
+        raise DataError(f"bad breathing_follows_tissue {follows!r}: expected a number in [0, 1]")
     frames, seed, fps = int(frames), int(seed), float(fps)
     out = Path(out_dir)
     prepare_out_dir(out)
@@ -106,7 +113,7 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
     scene = make_scene(seed)
     rig = raw_rig(width, height, seed) if raw else rectified_rig(width, height)
     poses = make_path(scenario, frames, seed)
-    breathing = make_breathing(scene, seed) if scenario in BREATHES else None
+    breathing = make_breathing(scene, seed, float(follows)) if scenario in BREATHES else None
     instrument = InstrumentMotion(scene, seed, poses[0], breathing) if scenario == "deforming" else None
     renderer = Renderer(scene, breathing, mm_per_px=scene.rest_depth_mm / rig.left.K[0, 0])
     masks = instrument is not None
@@ -169,6 +176,7 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
         "rest_depth_mm": scene.rest_depth_mm,
         "light": "point light at the left camera's optical centre",
         "breathing_period_s": breathing.period_s if breathing is not None else None,
+        "breathing_follows_tissue": float(follows),
         "files": _files_meaning(raw, masks, video),
         "notes": ("raw mode: depth/ and nonrigid/ are not written (ground truth is for rectified output only)"
                   if raw else ""),
