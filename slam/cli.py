@@ -164,6 +164,12 @@ def main(argv: list[str] | None = None) -> int:
         # configuration mistakes surfacing from the library layers (e.g. a missing checkpoint)
         print(f"slam {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:
+        # an output that cannot be written (a file in the way, no permission, a full disk); what
+        # a run had finished is on disk already (trajectory rows are written as they come)
+        where = f"{err.filename}: " if err.filename else ""
+        print(f"slam {args.command}: error: {where}{err.strerror or err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -127,6 +127,21 @@ def test_bad_input_gives_one_line_error(synth_dir, tmp_path, setup, needle):
     assert "Traceback" not in proc.stderr
 
 
+@pytest.mark.parametrize("command", ["run", "synth"])
+def test_unwritable_output_gives_one_line_error(synth_dir, tmp_path, command):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("in the way")
+    out = blocker / "out"
+    if command == "run":
+        proc = run_cli("run", synth_dir("rigid", 30, (160, 128)), "--weights", "constant", "--frames", "3",
+                       "--out", out, "--quiet")
+    else:
+        proc = run_cli("synth", out, "--scenario", "rigid", "--frames", "2", "--size", "64x48")
+    lines = [l for l in proc.stderr.strip().splitlines() if l.strip() and "%|" not in l]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert len(lines) == 1 and str(out) in lines[0] and "not a directory" in lines[0].lower(), proc.stderr
+
+
 def test_bad_config_value_from_the_command_line(synth_dir, tmp_path):
     data = synth_dir("rigid", 30, (160, 128))
     proc = run_cli("run", data, "--set", "solver.max_iter=3", "--out", tmp_path / "o")
