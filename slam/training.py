@@ -36,7 +36,7 @@ from vo.geometry import backproject
 from vo.lie import se3_log
 from vo.odometry import StereoOdometry, VOConfig
 from vo.residuals import PoseProblem
-from vo.weights import INPUT_VERSION, WeightInputs, WeightNetworks, network_inputs, sample_weights
+from vo.weights import IN_CHANNELS, INPUT_VERSION, WeightInputs, WeightNetworks, network_inputs, sample_weights
 
 log = logging.getLogger("slam.train")
 
@@ -108,6 +108,8 @@ class TrainConfig:
     residuals: str = "2d3d"
     downscale: int = 8
     base: int = 16
+    # the networks' input layout (vo.weights.network_inputs); 1 reproduces the shipped 3D checkpoint
+    inputs: int = INPUT_VERSION
     data: TrainDataConfig = field(default_factory=TrainDataConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     correspondence: CorrespondenceConfig = field(default_factory=CorrespondenceConfig)
@@ -135,6 +137,8 @@ def load_train_config(path: str | Path, overrides: list[str] | None = None) -> T
         apply_override(cfg, item)
     if cfg.residuals not in ("2d3d", "2d", "3d"):
         raise ConfigError(f"{path}: 'residuals' must be one of 2d3d, 2d, 3d")
+    if cfg.inputs not in IN_CHANNELS:
+        raise ConfigError(f"{path}: 'inputs' must be one of {', '.join(map(str, IN_CHANNELS))} (weight-network input versions)")
     return cfg
 
 
@@ -192,7 +196,7 @@ def _cache_key(cfg: TrainConfig, path: Path) -> str:
     data.pop("breathing_follows_tissue")  # in the sequence's folder name already; keeps earlier caches valid
     relevant = {"seq": str(path.resolve()), "data": data, "corr": asdict(cfg.correspondence),
                 "depth": asdict(cfg.depth), "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 1,
-                "inputs": INPUT_VERSION}
+                "inputs": cfg.inputs}
     return hashlib.sha1(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:12]
 
 
@@ -227,7 +231,8 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
         flow = odo._flow(odo.temporal_flow, cur.image, cur.gray, ref.image, ref.gray)
         target, valid, valid3, points_ref = odo.build_problem(cur, ref, flow)
         _, x3 = network_inputs(WeightInputs(cur.image, cur.depth / dmax, flow, cur.parallax,
-                                            ref.image, ref.depth / dmax, ref.parallax, valid), cfg.downscale)
+                                            ref.image, ref.depth / dmax, ref.parallax, valid), cfg.downscale,
+                              cfg.inputs)
         idx = valid.flatten().nonzero().squeeze(1)
         n = cfg.data.pixels_per_pair
         if idx.numel() < 64:
@@ -358,7 +363,7 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
 
     sequences, train_set, val = training_data(cfg, progress=progress and rank == 0)
 
-    nets = WeightNetworks(downscale=cfg.downscale, residuals=cfg.residuals, base=cfg.base)
+    nets = WeightNetworks(downscale=cfg.downscale, residuals=cfg.residuals, base=cfg.base, inputs=cfg.inputs)
     model = nets
     if world > 1:
         from torch.nn.parallel import DistributedDataParallel
@@ -421,7 +426,7 @@ def save_checkpoint(path: Path, cfg: TrainConfig, state: dict, sequences: list, 
                     best_epoch: int, best_val: float, baseline: float, history: list, t0: float, final: bool) -> None:
     """Write the weights with everything needed to reproduce and use them."""
     meta = {
-        "residuals": cfg.residuals, "downscale": cfg.downscale, "base": cfg.base, "inputs": INPUT_VERSION,
+        "residuals": cfg.residuals, "downscale": cfg.downscale, "base": cfg.base, "inputs": cfg.inputs,
         "correspondence": asdict(cfg.correspondence), "image_size": [cfg.data.width, cfg.data.height],
         "max_depth_mm": cfg.depth.max_depth_mm, "train_config": asdict(cfg),
         "data": {"sequences": [str(p) for p in sequences], "pairs_train": n_train, "pairs_val": n_val},

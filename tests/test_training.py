@@ -42,11 +42,26 @@ def test_training_writes_a_reproducible_usable_checkpoint(tmp_path):
         assert torch.equal(v, again["state_dict"][k]), k
 
 
+def test_training_with_the_first_input_layout(tmp_path):
+    """`inputs: 1` trains (and records) the version-1 layout the shipped 3D checkpoint has."""
+    cfg = {**TINY, "inputs": 1, "optim": {**TINY["optim"], "epochs": 1},
+           "data": {**TINY["data"], "scenarios": ["rigid"], "cache_dir": str(tmp_path / "cache")}}
+    path = tmp_path / "v1.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    assert main(["train", "--config", str(path), "--out", str(tmp_path / "v1")]) == 0
+    nets, meta = load_weight_networks(tmp_path / "v1" / "weights_2d3d.pt", "2d3d")
+    assert meta["inputs"] == 1 and nets.inputs == 1
+    assert nets.net3d.enc1[0].in_channels == IN_CHANNELS[1][1]
+
+
 def test_bad_training_config(tmp_path, capsys):
     path = tmp_path / "bad.yaml"
     path.write_text("optim:\n  epoch: 3\n")
     assert main(["train", "--config", str(path)]) == 2
     assert "unknown key 'optim.epoch'" in capsys.readouterr().err
+    path.write_text("inputs: 7\n")
+    assert main(["train", "--config", str(path)]) == 2
+    assert "'inputs' must be one of 1, 2" in capsys.readouterr().err
 
 
 def _inputs(depth_ratio: float = 1.0) -> WeightInputs:
