@@ -103,9 +103,12 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
         DataError: unknown scenario, bad size/frames/seed/fps, or an unwritable folder.
     """
     width, height = _check_args(scenario, frames, size, seed, fps)
-    follows = breathing_follows_tissue
-    if not (isinstance(follows, (int, float)) and 0.0 <= follows <= 1.0):
-        raise DataError(f"bad breathing_follows_tissue {follows!r}: expected a number in [0, 1]")
+    try:
+        follows = float(breathing_follows_tissue)
+    except (TypeError, ValueError):
+        follows = float("nan")
+    if not 0.0 <= follows <= 1.0:
+        raise DataError(f"bad breathing_follows_tissue {breathing_follows_tissue!r}: expected a number in [0, 1]")
     frames, seed, fps = int(frames), int(seed), float(fps)
     out = Path(out_dir)
     prepare_out_dir(out)
@@ -113,7 +116,7 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
     scene = make_scene(seed)
     rig = raw_rig(width, height, seed) if raw else rectified_rig(width, height)
     poses = make_path(scenario, frames, seed)
-    breathing = make_breathing(scene, seed, float(follows)) if scenario in BREATHES else None
+    breathing = make_breathing(scene, seed, follows) if scenario in BREATHES else None
     instrument = InstrumentMotion(scene, seed, poses[0], breathing) if scenario == "deforming" else None
     renderer = Renderer(scene, breathing, mm_per_px=scene.rest_depth_mm / rig.left.K[0, 0])
     masks = instrument is not None
@@ -176,7 +179,7 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
         "rest_depth_mm": scene.rest_depth_mm,
         "light": "point light at the left camera's optical centre",
         "breathing_period_s": breathing.period_s if breathing is not None else None,
-        "breathing_follows_tissue": float(follows),
+        "breathing_follows_tissue": follows,
         "files": _files_meaning(raw, masks, video),
         "notes": ("raw mode: depth/ and nonrigid/ are not written (ground truth is for rectified output only)"
                   if raw else ""),
