@@ -21,7 +21,6 @@ import cv2
 import numpy as np
 
 THRESHOLD_MM = 0.5
-NONRIGID_SCALE_MM = 0.01  # nonrigid/*.png: uint16 in 0.01 mm (slam.synth.writer)
 
 
 def region_ratio(nonrigid: np.ndarray, tissue: np.ndarray, keep: float, threshold_mm: float = THRESHOLD_MM) -> float | None:
@@ -50,10 +49,14 @@ def region_ratio(nonrigid: np.ndarray, tissue: np.ndarray, keep: float, threshol
 
 def read_sequence(data: Path) -> tuple[np.ndarray, np.ndarray]:
     """``nonrigid`` (mm) and ``tissue`` stacks ``(T, H, W)`` of a synthetic sequence folder."""
+    from slam.datasets.dataset import read_scaled_uint
+    from slam.datasets.stereomis import read_depth_scale
+
     files = sorted((data / "nonrigid").glob("*l.png"))
     if not files:
         raise SystemExit(f"{data}: no nonrigid/ ground truth (a synthetic sequence from `slam synth` is needed)")
-    nonrigid = np.stack([cv2.imread(str(f), cv2.IMREAD_UNCHANGED).astype(np.float32) * NONRIGID_SCALE_MM for f in files])
+    scale = read_depth_scale(data / "synth.json")  # nonrigid/ is written in the depth's units
+    nonrigid = np.stack([read_scaled_uint(f, scale) for f in files])
     masks = [data / "masks" / f.name for f in files]
     if all(m.is_file() for m in masks):
         tissue = np.stack([cv2.imread(str(m), cv2.IMREAD_GRAYSCALE) > 0 for m in masks])
