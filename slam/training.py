@@ -2,7 +2,8 @@
 
 Data: sequences with ground truth (by default the project's own synthetic sequences, generated
 on first use into the cache), pairs 1..``max_gap`` frames apart balanced between moving and
-static camera, split 80/20 into training and validation. For each pair the correspondences and
+static camera, split 80/20 into training and validation by sequence (the validation loss is then
+taken on tissue and motion the networks have not seen) or by pair. For each pair the correspondences and
 the network inputs are computed once and cached: the weight networks' inputs at 1/``downscale``
 resolution, and the pose problem at ``pixels_per_pair`` randomly drawn valid pixels (the weight
 maps are smooth, so their bilinear upsampling evaluated at those pixels is exact and training
@@ -85,7 +86,11 @@ class OptimConfig:
         batch_size: pairs per step.
         lr: Adam learning rate.
         patience: epochs without validation improvement before stopping.
-        val_fraction: share of pairs held out for validation.
+        val_fraction: share held out for validation.
+        split: ``sequence`` holds out whole sequences (that share of each scenario's sequences,
+            so the validation loss measures tissue, breathing and motion the networks have not
+            seen; falls back to ``pair`` when no scenario has two sequences) or ``pair`` (that
+            share of all pairs, drawn from the training sequences themselves).
         seed: seeds sampling, splitting, initialisation and shuffling.
         grad_tol: the forward pass must reach |grad f| / f below this to contribute a gradient.
         threads: torch threads (0 = torch's default).
@@ -96,6 +101,7 @@ class OptimConfig:
     lr: float = 3e-4
     patience: int = 6
     val_fraction: float = 0.2
+    split: str = "sequence"
     seed: int = 0
     grad_tol: float = 1e-3
     threads: int = 0
@@ -137,6 +143,8 @@ def load_train_config(path: str | Path, overrides: list[str] | None = None) -> T
         apply_override(cfg, item)
     if cfg.residuals not in ("2d3d", "2d", "3d"):
         raise ConfigError(f"{path}: 'residuals' must be one of 2d3d, 2d, 3d")
+    if cfg.optim.split not in ("sequence", "pair"):
+        raise ConfigError(f"{path}: 'optim.split' must be sequence or pair")
     if cfg.inputs not in IN_CHANNELS:
         raise ConfigError(f"{path}: 'inputs' must be one of {', '.join(map(str, IN_CHANNELS))} (weight-network input versions)")
     return cfg
@@ -192,10 +200,12 @@ def sample_pairs(gt: np.ndarray, R1: np.ndarray, cfg: TrainDataConfig, rng: rand
 
 
 def _cache_key(cfg: TrainConfig, path: Path) -> str:
+    """What the samples of one sequence depend on (not on which other sequences are trained)."""
     data = asdict(cfg.data)
-    data.pop("breathing_follows_tissue")  # in the sequence's folder name already; keeps earlier caches valid
+    for name in ("breathing_follows_tissue", "scenarios", "seeds", "sequences", "cache_dir"):
+        data.pop(name)  # the sequence itself is named by its path (the coupling is in the folder name)
     relevant = {"seq": str(path.resolve()), "data": data, "corr": asdict(cfg.correspondence),
-                "depth": asdict(cfg.depth), "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 1,
+                "depth": asdict(cfg.depth), "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 2,
                 "inputs": cfg.inputs}
     return hashlib.sha1(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:12]
 
@@ -286,15 +296,41 @@ def training_data(cfg: TrainConfig, progress: bool = True) -> tuple[list[Path], 
 
     rng = random.Random(cfg.optim.seed)
     sequences = training_sequences(cfg, progress=progress)
-    samples: list[dict] = []
-    for path in tqdm(sequences, desc="pairs", disable=not progress, leave=False):
-        samples += build_pair_samples(path, cfg)
+    per_sequence = [build_pair_samples(path, cfg)
+                    for path in tqdm(sequences, desc="pairs", disable=not progress, leave=False)]
+    samples = [s for seq in per_sequence for s in seq]
     if len(samples) < 2:
         raise SlamError("training: fewer than 2 usable pairs")
+    held_out = held_out_sequences(cfg, len(sequences), rng) if cfg.optim.split == "sequence" else set()
+    if held_out and any(per_sequence[k] for k in held_out) and any(
+            per_sequence[k] for k in range(len(sequences)) if k not in held_out):
+        train_set = [s for k, seq in enumerate(per_sequence) if k not in held_out for s in seq]
+        val = [s for k in sorted(held_out) for s in per_sequence[k]]
+        log.info("validation: %d held-out sequences (%s)", len(held_out),
+                 ", ".join(sequences[k].name for k in sorted(held_out)))
+        return sequences, train_set, val
+    if cfg.optim.split == "sequence":
+        log.warning("validation: no scenario has two sequences to hold one out; validating on a share of "
+                    "the pairs of the training sequences")
     order = list(range(len(samples)))
     rng.shuffle(order)
     n_val = max(1, int(round(cfg.optim.val_fraction * len(samples))))
     return sequences, [samples[k] for k in order[n_val:]], [samples[k] for k in order[:n_val]]
+
+
+def held_out_sequences(cfg: TrainConfig, n_sequences: int, rng: random.Random) -> set[int]:
+    """Indices (into ``training_sequences``) of the validation sequences: in every scenario, the
+    ``val_fraction`` share of its seeds (rounded; none when it has one), drawn by ``rng``; of the
+    extra ``data.sequences`` likewise, as one group."""
+    n_seeds = len(cfg.data.seeds)
+    groups = [list(range(k * n_seeds, (k + 1) * n_seeds)) for k in range(len(cfg.data.scenarios))]
+    groups.append(list(range(len(cfg.data.scenarios) * n_seeds, n_sequences)))
+    held: set[int] = set()
+    for group in groups:
+        if len(group) >= 2:
+            n = int(round(cfg.optim.val_fraction * len(group)))
+            held.update(rng.sample(group, min(max(n, 1), len(group) - 1)))
+    return held
 
 
 # ------------------------------------------------------------------------------------- model
@@ -362,6 +398,8 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
 
     sequences, train_set, val = training_data(cfg, progress=progress and rank == 0)
+    train_names = {s["source"].rsplit(":", 1)[0] for s in train_set}
+    val_sequences = sorted({s["source"].rsplit(":", 1)[0] for s in val} - train_names)  # held out whole
 
     nets = WeightNetworks(downscale=cfg.downscale, residuals=cfg.residuals, base=cfg.base, inputs=cfg.inputs)
     model = nets
@@ -404,7 +442,8 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
             best_state = {k: v.clone() for k, v in nets.state_dict().items()}
             if rank == 0:  # an interrupted training keeps its best checkpoint
                 save_checkpoint(out_dir / f"weights_{cfg.residuals}.pt", cfg, best_state, sequences, len(train_set),
-                                len(val), best_epoch, best_val, baseline, history, t0, final=False)
+                                len(val), best_epoch, best_val, baseline, history, t0, final=False,
+                                val_sequences=val_sequences)
         else:
             stale += 1
             if stale >= cfg.optim.patience:
@@ -412,7 +451,7 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
     ckpt_path = out_dir / f"weights_{cfg.residuals}.pt"
     if rank == 0:
         save_checkpoint(ckpt_path, cfg, best_state, sequences, len(train_set), len(val), best_epoch, best_val,
-                        baseline, history, t0, final=True)
+                        baseline, history, t0, final=True, val_sequences=val_sequences)
         print(f"best validation loss {best_val:.5f} at epoch {best_epoch} (constant weights w=1: {baseline:.5f}); "
               f"checkpoint {ckpt_path}")
     if world > 1:
@@ -423,13 +462,16 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
 
 
 def save_checkpoint(path: Path, cfg: TrainConfig, state: dict, sequences: list, n_train: int, n_val: int,
-                    best_epoch: int, best_val: float, baseline: float, history: list, t0: float, final: bool) -> None:
-    """Write the weights with everything needed to reproduce and use them."""
+                    best_epoch: int, best_val: float, baseline: float, history: list, t0: float, final: bool,
+                    val_sequences: list | None = None) -> None:
+    """Write the weights with everything needed to reproduce and use them. ``val_sequences``: the
+    names of the sequences held out whole for validation (empty when pairs were split)."""
     meta = {
         "residuals": cfg.residuals, "downscale": cfg.downscale, "base": cfg.base, "inputs": cfg.inputs,
         "correspondence": asdict(cfg.correspondence), "image_size": [cfg.data.width, cfg.data.height],
         "max_depth_mm": cfg.depth.max_depth_mm, "train_config": asdict(cfg),
-        "data": {"sequences": [str(p) for p in sequences], "pairs_train": n_train, "pairs_val": n_val},
+        "data": {"sequences": [str(p) for p in sequences], "pairs_train": n_train, "pairs_val": n_val,
+                 "validation_sequences": list(val_sequences or [])},
         "best_epoch": best_epoch, "val_loss": best_val, "val_loss_constant_w1": baseline,
         "history": history, "minutes": (time.time() - t0) / 60.0, "finished": final,
     }

@@ -54,6 +54,32 @@ def test_training_with_the_first_input_layout(tmp_path):
     assert nets.net3d.enc1[0].in_channels == IN_CHANNELS[1][1]
 
 
+def test_validation_holds_out_whole_sequences(tmp_path):
+    """`optim.split: sequence` (the default) validates on sequences no training pair comes from,
+    one per scenario here; with one sequence per scenario it falls back to a split of the pairs."""
+    from slam.training import load_train_config, training_data
+
+    cfg_dict = {**TINY, "optim": {**TINY["optim"], "val_fraction": 0.5},
+                "data": {**TINY["data"], "seeds": [5000, 5001], "pairs_per_sequence": 4,
+                         "cache_dir": str(tmp_path / "cache")}}
+    path = tmp_path / "split.yaml"
+    path.write_text(yaml.safe_dump(cfg_dict))
+    cfg = load_train_config(path)
+    assert cfg.optim.split == "sequence"
+    sequences, train_set, val = training_data(cfg, progress=False)
+    seq_of = lambda samples: {s["source"].rsplit(":", 1)[0] for s in samples}
+    assert len(sequences) == 4 and seq_of(train_set).isdisjoint(seq_of(val))
+    assert len(seq_of(val)) == 2 and {n.split("_s")[0] for n in seq_of(val)} == {"rigid", "breathing"}
+    assert len(train_set) + len(val) == 16
+    # by pair: the same pairs, validation drawn across all four sequences
+    _, train_p, val_p = training_data(load_train_config(path, ["optim.split=pair"]), progress=False)
+    assert len(train_p) + len(val_p) == 16 and len(val_p) == 8
+    assert not seq_of(train_p).isdisjoint(seq_of(val_p))
+    # one sequence per scenario: nothing to hold out whole, the pairs are split
+    _, train_1, val_1 = training_data(load_train_config(path, ["data.seeds=[5000]"]), progress=False)
+    assert len(val_1) == 4 and seq_of(train_1) & seq_of(val_1)
+
+
 def test_bad_training_config(tmp_path, capsys):
     path = tmp_path / "bad.yaml"
     path.write_text("optim:\n  epoch: 3\n")
@@ -62,6 +88,9 @@ def test_bad_training_config(tmp_path, capsys):
     path.write_text("inputs: 7\n")
     assert main(["train", "--config", str(path)]) == 2
     assert "'inputs' must be one of 1, 2" in capsys.readouterr().err
+    path.write_text("optim:\n  split: random\n")
+    assert main(["train", "--config", str(path)]) == 2
+    assert "'optim.split' must be sequence or pair" in capsys.readouterr().err
 
 
 def _inputs(depth_ratio: float = 1.0) -> WeightInputs:
