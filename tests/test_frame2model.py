@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -254,3 +255,43 @@ def test_robust_3d_step_follows_the_reference_kind(synth_dir, tmp_path):
     frames.odometry.track = recording_track
     frames.run(progress=False)
     assert calls == [False] * 5, calls
+
+
+def test_model_views_are_weighted_by_the_model_reference_networks(synth_dir, tmp_path):
+    """Against a view rendered from the map the packaged ``weights_2d3d_model.pt`` weighs the
+    pixels (README, "Training the weight networks"); against camera frames ``weights_2d3d.pt``.
+    A checkpoint the user names is used for both unless ``checkpoint_model`` is named too."""
+    from slam.config import load_config
+    from slam.datasets import open_dataset
+    from vo.odometry import StereoOdometry
+    from vo.weights import CHECKPOINT_DIR, model_reference_checkpoint
+
+    packaged = CHECKPOINT_DIR / "weights_2d3d_model.pt"
+    assert model_reference_checkpoint("", "", "2d3d") == packaged and packaged.is_file()
+    assert model_reference_checkpoint("mine.pt", "", "2d3d") is None
+    assert model_reference_checkpoint("mine.pt", "theirs.pt", "2d3d") == Path("theirs.pt")
+    assert model_reference_checkpoint("", "", "3d") is None          # no model variant: the same networks
+
+    data = synth_dir("rigid", 3, (160, 128))
+    cfg = load_config(None, [])
+    ds = open_dataset(data, cfg.data)
+    odo = StereoOdometry(ds.camera, cfg.vo())
+    assert odo.model_weight_networks is not None
+    views = [odo.make_view(ds.frame(k).left, ds.frame(k).right) for k in (0, 1)]
+    flow, fb_ok = odo._correspondences(views[1], views[0], None, 0.0)
+    _, valid, _, _ = odo.build_problem(views[1], views[0], flow, fb_ok)
+    cam = odo._weights(views[1], views[0], flow, valid, model_reference=False)
+    model = odo._weights(views[1], views[0], flow, valid, model_reference=True)
+    assert not torch.allclose(cam[0], model[0]) and not torch.allclose(cam[1], model[1])
+    assert torch.equal(cam[0], odo.weight_networks(_weight_inputs(odo, views[1], views[0], flow, valid))[0])
+
+    named = load_config(None, [f"weights.checkpoint={CHECKPOINT_DIR / 'weights_2d3d.pt'}"])
+    assert StereoOdometry(ds.camera, named.vo()).model_weight_networks is None
+
+
+def _weight_inputs(odo, cur, ref, flow, valid):
+    from vo.weights import WeightInputs
+
+    dmax = odo.config.depth.max_depth_mm
+    return WeightInputs(cur.image, cur.depth / dmax, flow, cur.parallax, ref.image, ref.depth / dmax,
+                        ref.parallax, valid)

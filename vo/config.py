@@ -143,6 +143,10 @@ class WeightsConfig:
             the 1200 training pairs in ``tools/sweep_constant_weights.py`` (README, "Constant
             weights"): w3d/w2d = 0.01 gave the lowest pose error (w = 1 for both: 3.9x higher).
         checkpoint: weight-network checkpoint; empty = the packaged one for ``residuals``.
+        checkpoint_model: the checkpoint used when the reference is a view rendered from the map
+            (frame2model); empty = the packaged ``weights_{residuals}_model.pt`` when
+            ``checkpoint`` is empty and that file exists, else the networks of ``checkpoint``
+            (README, "Training the weight networks": which networks track best against the model).
         downscale: the networks run at 1/downscale of the image size (the authors use 8).
     """
 
@@ -151,4 +155,5 @@ class WeightsConfig:
     w2d: float = 1.0
     w3d: float = 0.01
     checkpoint: str = ""
+    checkpoint_model: str = ""
     downscale: int = 8

@@ -24,7 +24,8 @@ from vo.geometry import backproject, flow_grid, lands_inside, pixel_grid, sample
 from vo.lie import rotation_angle_deg
 from vo.residuals import PoseProblem, residuals
 from vo.solver import solve_pose
-from vo.weights import WeightInputs, WeightNetworks, constant_weights, load_weight_networks
+from vo.weights import (WeightInputs, WeightNetworks, constant_weights, load_weight_networks,
+                        model_reference_checkpoint)
 
 
 @dataclass
@@ -132,10 +133,15 @@ class StereoOdometry:
         self.K = camera.K_tensor(self.device)
         self.temporal_flow, self.stereo_flow = make_flow_estimators(config.correspondence, device)
         self.weight_networks = None
+        self.model_weight_networks = None   # against views rendered from the map (None: the same)
         self.weight_meta: dict = {}
         if config.weights.mode == "learned":
+            wcfg = config.weights
             if weight_networks is None:
-                weight_networks, self.weight_meta = load_weight_networks(config.weights.checkpoint, config.weights.residuals, device)
+                weight_networks, self.weight_meta = load_weight_networks(wcfg.checkpoint, wcfg.residuals, device)
+                model_path = model_reference_checkpoint(wcfg.checkpoint, wcfg.checkpoint_model, wcfg.residuals)
+                if model_path is not None:
+                    self.model_weight_networks = load_weight_networks(model_path, wcfg.residuals, device)[0].to(self.device).eval()
             self.weight_networks = weight_networks.to(self.device).eval()
         elif config.weights.mode != "constant":
             raise ValueError(f"unknown weights.mode '{config.weights.mode}' (learned, constant)")
@@ -243,15 +249,18 @@ class StereoOdometry:
                     rendered=color is not None)
 
     # ---------------------------------------------------------------- tracking
-    def _weights(self, cur: View, ref: View, flow: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _weights(self, cur: View, ref: View, flow: torch.Tensor, valid: torch.Tensor,
+                 model_reference: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         wcfg = self.config.weights
         if self.weight_networks is None:
             return constant_weights(valid, wcfg.w2d, wcfg.w3d, wcfg.residuals)
+        networks = self.model_weight_networks if model_reference and self.model_weight_networks is not None \
+            else self.weight_networks
         dmax = self.config.depth.max_depth_mm
         inp = WeightInputs(image_cur=cur.image, depth_cur=cur.depth / dmax, flow=flow, parallax_cur=cur.parallax,
                            image_ref=ref.image, depth_ref=ref.depth / dmax, parallax_ref=ref.parallax, valid=valid)
         with torch.inference_mode():
-            return self.weight_networks(inp)
+            return networks(inp)
 
     def build_problem(self, cur: View, ref: View, flow: torch.Tensor, flow_valid: torch.Tensor | None = None):
         """The pose problem of ``cur`` against ``ref`` given the temporal flow.
@@ -290,7 +299,8 @@ class StereoOdometry:
                 handed on to the next frame; the short flow between two views of the same pose
                 measures it, and a gain below 1 removes it over a few frames while damping the
                 render's flow noise (a complementary filter). 0: no chain.
-            model_reference: ``ref`` is a view rendered from the map: the robust 3D step uses
+            model_reference: ``ref`` is a view rendered from the map: the weights come from the
+                model-reference networks (``weights.checkpoint_model``) and the robust 3D step uses
                 ``solver.robust_3d_model_mm`` instead of ``solver.robust_3d_mm``.
         """
         timings: dict = {}
@@ -298,7 +308,7 @@ class StereoOdometry:
         flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
         t1 = time.perf_counter()
         target, valid, valid3, points_ref = self.build_problem(cur, ref, flow, fb_ok)
-        w2d, w3d = self._weights(cur, ref, flow, valid)
+        w2d, w3d = self._weights(cur, ref, flow, valid, model_reference)
         w3d = w3d * valid3
         if self.weight_hook is not None:
             w2d, w3d = self.weight_hook(cur, ref, flow, w2d, w3d)

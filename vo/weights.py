@@ -223,6 +223,16 @@ def default_checkpoint(residuals: str) -> Path:
     return CHECKPOINT_DIR / f"weights_{residuals}.pt"
 
 
+def model_reference_checkpoint(checkpoint: str, checkpoint_model: str, residuals: str) -> Path | None:
+    """The checkpoint for tracking against a view rendered from the map, or None for "the same
+    networks as against camera frames": ``checkpoint_model`` if given; else, when ``checkpoint`` is
+    the packaged default, the packaged ``weights_{residuals}_model.pt`` if there is one."""
+    if checkpoint_model:
+        return Path(checkpoint_model)
+    packaged = CHECKPOINT_DIR / f"weights_{residuals}_model.pt"
+    return packaged if not checkpoint and packaged.is_file() else None
+
+
 class MissingWeightsError(ValueError):
     """``weights.mode: learned`` without a usable checkpoint."""
 
