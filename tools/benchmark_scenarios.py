@@ -8,7 +8,9 @@ and macro averages, for constant and learned weights (ablation).
 Evaluation seeds are disjoint from the training seeds (configs/train.yaml, 1000+): 9001-9003 were
 fixed before any tuning (and later decisions were read off them), 9101-9107 were added unseen in
 stop 21 because three sequences per scenario left the table within training noise; ten per
-scenario take about 20 minutes on two cores. Methods:
+scenario take about 20 minutes on two cores. Decisions (which checkpoint to ship) are taken on the
+validation seeds 1004, 1005 and 1012-1014 (`--seeds 1004 1005 1012 1013 1014`), which no training
+uses either. Methods:
   w = 1            constant weights w2D = w3D = 1 (the paper's "w/o weight")
   best constant    the swept balance (weights.w2d / weights.w3d defaults)
   learned 2D       2D residuals only, learned w2D (checkpoint weights_2d.pt)
