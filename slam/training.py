@@ -318,6 +318,11 @@ def training_data(cfg: TrainConfig, progress: bool = True) -> tuple[list[Path], 
     return sequences, [samples[k] for k in order[n_val:]], [samples[k] for k in order[:n_val]]
 
 
+def sequence_name(sample: dict) -> str:
+    """The name of the sequence a pair sample was drawn from (its ``source`` is ``NAME:i->j``)."""
+    return sample["source"].rsplit(":", 1)[0]
+
+
 def held_out_sequences(cfg: TrainConfig, n_sequences: int, rng: random.Random) -> set[int]:
     """Indices (into ``training_sequences``) of the validation sequences: in every scenario, the
     ``val_fraction`` share of its seeds (rounded; none when it has one), drawn by ``rng``; of the
@@ -398,8 +403,7 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
 
     sequences, train_set, val = training_data(cfg, progress=progress and rank == 0)
-    train_names = {s["source"].rsplit(":", 1)[0] for s in train_set}
-    val_sequences = sorted({s["source"].rsplit(":", 1)[0] for s in val} - train_names)  # held out whole
+    val_sequences = sorted({sequence_name(s) for s in val} - {sequence_name(s) for s in train_set})  # held out whole
 
     nets = WeightNetworks(downscale=cfg.downscale, residuals=cfg.residuals, base=cfg.base, inputs=cfg.inputs)
     model = nets

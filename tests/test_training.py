@@ -57,7 +57,7 @@ def test_training_with_the_first_input_layout(tmp_path):
 def test_validation_holds_out_whole_sequences(tmp_path):
     """`optim.split: sequence` (the default) validates on sequences no training pair comes from,
     one per scenario here; with one sequence per scenario it falls back to a split of the pairs."""
-    from slam.training import load_train_config, training_data
+    from slam.training import load_train_config, sequence_name, training_data
 
     cfg_dict = {**TINY, "optim": {**TINY["optim"], "val_fraction": 0.5},
                 "data": {**TINY["data"], "seeds": [5000, 5001], "pairs_per_sequence": 4,
@@ -67,7 +67,7 @@ def test_validation_holds_out_whole_sequences(tmp_path):
     cfg = load_train_config(path)
     assert cfg.optim.split == "sequence"
     sequences, train_set, val = training_data(cfg, progress=False)
-    seq_of = lambda samples: {s["source"].rsplit(":", 1)[0] for s in samples}
+    seq_of = lambda samples: {sequence_name(s) for s in samples}
     assert len(sequences) == 4 and seq_of(train_set).isdisjoint(seq_of(val))
     assert len(seq_of(val)) == 2 and {n.split("_s")[0] for n in seq_of(val)} == {"rigid", "breathing"}
     assert len(train_set) + len(val) == 16
