@@ -116,6 +116,26 @@ def exposure_gain(brightness: float, level: float, lo: float = 0.25, hi: float =
     return float(min(max(level / max(brightness, 0.5), lo), hi))
 
 
+class FusionExposure:
+    """The colour each view is fused with: as it is, or (``normalised``) brought to the map's
+    exposure, the mean brightness of the first fused frame that is not black (:func:`exposure_gain`)."""
+
+    def __init__(self, mode: str):
+        self.normalised = mode == "normalised"
+        self.level: Optional[float] = None
+
+    def colour(self, view: View) -> torch.Tensor:
+        """``view``'s ``(3, H, W)`` colour to fuse."""
+        colour = view.image[0]
+        if not self.normalised:
+            return colour
+        brightness = mean_brightness(view)
+        if self.level is None and brightness >= 8.0:     # (not a black frame)
+            self.level = brightness
+        gain = exposure_gain(brightness, self.level) if self.level else 1.0
+        return (colour * gain).clamp_(0.0, 1.0) if gain != 1.0 else colour
+
+
 class Pipeline:
     """One run over a dataset.
 
@@ -155,7 +175,7 @@ class Pipeline:
                                       and config.weights.residuals != "2d")
         self.timings: dict[str, list[float]] = {}
         self.fallbacks = 0
-        self.exposure_level: Optional[float] = None     # the map's exposure: the first fused frame's
+        self.exposure = FusionExposure(tc.fuse_exposure)
         self.velocity = np.eye(4)   # the last tracked relative motion: solver.init=constant_velocity's start
         self._ahead_view: Optional[View] = None   # the read-ahead thread's last view (tracking.flow_ahead)
         self._waiting_for = -1      # the frame the main thread waits for (-1: none; tracking.flow_ahead)
@@ -227,15 +247,7 @@ class Pipeline:
         weight = None
         if w3d is not None and self.learned_fusion_weight:
             weight = normalised_fusion_weight(w3d[0, 0], valid)
-        colour = view.image[0]
-        if self.config.tracking.fuse_exposure == "normalised":
-            brightness = mean_brightness(view)
-            if self.exposure_level is None and brightness >= 8.0:     # (not a black frame)
-                self.exposure_level = brightness
-            gain = exposure_gain(brightness, self.exposure_level) if self.exposure_level else 1.0
-            if gain != 1.0:
-                colour = (colour * gain).clamp_(0.0, 1.0)
-        self.map.fuse(view.depth[0, 0], colour, self.odometry.K, torch.as_tensor(pose_rect, dtype=torch.float32),
+        self.map.fuse(view.depth[0, 0], self.exposure.colour(view), self.odometry.K, torch.as_tensor(pose_rect, dtype=torch.float32),
                       frame_index=index, weight=weight, valid=valid)
         self._time("fusion", (time.perf_counter() - t0) * 1000.0)
 

@@ -29,13 +29,14 @@ import numpy as np
 import torch
 import yaml
 
+from mapping import MapConfig
 from slam.errors import ConfigError, SlamError
 from slam.frame_view import frame_view
 from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
 from vo.ddn import declarative_pose
 from vo.geometry import backproject
 from vo.lie import se3_log
-from vo.odometry import StereoOdometry, VOConfig
+from vo.odometry import StereoOdometry, View, VOConfig
 from vo.residuals import PoseProblem
 from vo.weights import IN_CHANNELS, INPUT_VERSION, WeightInputs, WeightNetworks, network_inputs, sample_weights
 
@@ -60,6 +61,13 @@ class TrainDataConfig:
         pixels_per_pair: pose-problem pixels kept per pair.
         breathing_follows_tissue: passed to the generator (correlation of the breathing amplitude
             with the tissue's look; 0 = independent).
+        reference: what a pair's reference view is: ``frame`` (the camera frame, as in
+            frame2frame) or ``model`` (the surfel map fused from the frames up to the reference
+            frame at their ground-truth poses, rendered at the reference frame's pose, as
+            frame2model tracks against; trains the networks of ``weights.checkpoint_model``).
+        min_model_coverage: ``model``: a pair whose render covers less of the reference frame's
+            valid pixels is left out (tracking falls back to the previous frame there).
+        fuse_exposure: ``model``: the colour fused into the map (``tracking.fuse_exposure``).
     """
 
     scenarios: list = field(default_factory=lambda: ["rigid", "breathing", "scanning", "deforming", "loop"])
@@ -75,6 +83,9 @@ class TrainDataConfig:
     moving_threshold_deg: float = 0.1
     pixels_per_pair: int = 4096
     breathing_follows_tissue: float = 0.0
+    reference: str = "frame"
+    min_model_coverage: float = 0.95
+    fuse_exposure: str = "normalised"
 
 
 @dataclass
@@ -120,6 +131,7 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     correspondence: CorrespondenceConfig = field(default_factory=CorrespondenceConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
+    map: MapConfig = field(default_factory=MapConfig)    # the model references' map (data.reference: model)
     # the declarative layer needs a true minimum: no early stop on a flat cost, tight step tolerance;
     # torch's normal equations, with which the shipped checkpoints were trained (reproducible)
     solver: SolverConfig = field(default_factory=lambda: SolverConfig(max_iters=25, step_tol=1e-12, cost_rtol=0.0,
@@ -143,6 +155,14 @@ def load_train_config(path: str | Path, overrides: list[str] | None = None) -> T
         apply_override(cfg, item)
     if cfg.residuals not in ("2d3d", "2d", "3d"):
         raise ConfigError(f"{path}: 'residuals' must be one of 2d3d, 2d, 3d")
+    if cfg.data.reference not in ("frame", "model"):
+        raise ConfigError(f"{path}: 'data.reference' must be frame or model")
+    if cfg.data.fuse_exposure not in ("normalised", "as_seen"):
+        raise ConfigError(f"{path}: 'data.fuse_exposure' must be normalised or as_seen")
+    try:
+        cfg.map.validate()
+    except ValueError as err:
+        raise ConfigError(f"{path}: {err}") from None
     if cfg.optim.split not in ("sequence", "pair"):
         raise ConfigError(f"{path}: 'optim.split' must be sequence or pair")
     if cfg.inputs not in IN_CHANNELS:
@@ -204,9 +224,14 @@ def _cache_key(cfg: TrainConfig, path: Path) -> str:
     data = asdict(cfg.data)
     for name in ("breathing_follows_tissue", "scenarios", "seeds", "sequences", "cache_dir"):
         data.pop(name)  # the sequence itself is named by its path (the coupling is in the folder name)
+    if cfg.data.reference == "frame":   # (keys written before model references existed stay valid)
+        for name in ("reference", "min_model_coverage", "fuse_exposure"):
+            data.pop(name)
     relevant = {"seq": str(path.resolve()), "data": data, "corr": asdict(cfg.correspondence),
                 "depth": asdict(cfg.depth), "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 2,
                 "inputs": cfg.inputs}
+    if cfg.data.reference == "model":
+        relevant["map"] = asdict(cfg.map)
     return hashlib.sha1(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:12]
 
 
@@ -234,12 +259,16 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
             views[k] = frame_view(odo, dataset.frame(k), path)   # depth.source: stereo or the generator's
         return views[k]
 
+    model = ModelReference(cfg, odo, dataset) if cfg.data.reference == "model" else None
     samples = []
     g = torch.Generator().manual_seed(rng.randrange(2**31))
     for i, j, moving in sample_pairs(dataset.gt_poses, dataset.R1, cfg.data, rng):
-        ref, cur = view(i), view(j)
-        flow = odo._flow(odo.temporal_flow, cur.image, cur.gray, ref.image, ref.gray)
-        target, valid, valid3, points_ref = odo.build_problem(cur, ref, flow)
+        cur = view(j)
+        ref = view(i) if model is None else model.view_at(i, view)
+        if ref is None:
+            continue
+        flow, flow_ok = odo._correspondences(cur, ref, None, 0.0)    # as tracking computes them
+        target, valid, valid3, points_ref = odo.build_problem(cur, ref, flow, flow_ok)
         _, x3 = network_inputs(WeightInputs(cur.image, cur.depth / dmax, flow, cur.parallax,
                                             ref.image, ref.depth / dmax, ref.parallax, valid), cfg.downscale,
                               cfg.inputs)
@@ -280,6 +309,50 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
     torch.save(samples, tmp)
     tmp.replace(cache)
     return samples
+
+
+class ModelReference:
+    """The references of frame2model for one sequence: a surfel map fused from its frames at their
+    ground-truth poses (each frame with the same weight: the learned fusion weight tracking uses
+    is not there yet), rendered at a frame's pose and made a view as tracking makes it.
+
+    Args:
+        cfg: the training config (``map``, ``data.min_model_coverage``, ``data.fuse_exposure``).
+        odo: the odometry the views come from.
+        dataset: the sequence (with ground truth).
+    """
+
+    def __init__(self, cfg: TrainConfig, odo: StereoOdometry, dataset):
+        from mapping import SurfelMap
+        from slam.pipeline import FusionExposure
+
+        self.cfg, self.odo = cfg, odo
+        self.map = SurfelMap(cfg.map)
+        self.exposure = FusionExposure(cfg.data.fuse_exposure)
+        M = np.eye(4)
+        M[:3, :3] = dataset.R1
+        self.poses = [torch.as_tensor(T @ M.T, dtype=torch.float32) for T in dataset.gt_poses]  # rectified T_wc
+        self.size = (dataset.camera.height, dataset.camera.width)
+        self.fused = -1
+
+    def view_at(self, i: int, view) -> View | None:
+        """The model view at frame ``i``'s pose after fusing frames ``0..i`` (``view(k)`` gives frame
+        ``k``'s view; ``i`` must not decrease between calls), or None where the render covers
+        less than ``data.min_model_coverage`` of frame ``i``'s valid pixels."""
+        from slam.pipeline import model_coverage
+
+        while self.fused < i:
+            k = self.fused + 1
+            v = view(k)
+            self.map.fuse(v.depth[0, 0], self.exposure.colour(v), self.odo.K, self.poses[k], frame_index=k,
+                          valid=v.valid[0, 0])
+            self.fused = k
+        last = view(i)
+        mv = self.map.render(self.odo.K, self.poses[i], *self.size, colour=False)
+        if model_coverage(mv.valid, last.valid[0, 0]) < self.cfg.data.min_model_coverage:
+            return None
+        mv.with_colour()
+        return self.odo.view_from_render(mv.color, mv.depth, mv.valid, background=last)
 
 
 def collate(samples: list[dict]) -> dict:
@@ -471,7 +544,7 @@ def save_checkpoint(path: Path, cfg: TrainConfig, state: dict, sequences: list, 
     """Write the weights with everything needed to reproduce and use them. ``val_sequences``: the
     names of the sequences held out whole for validation (empty when pairs were split)."""
     meta = {
-        "residuals": cfg.residuals, "downscale": cfg.downscale, "base": cfg.base, "inputs": cfg.inputs,
+        "residuals": cfg.residuals, "reference": cfg.data.reference, "downscale": cfg.downscale, "base": cfg.base, "inputs": cfg.inputs,
         "correspondence": asdict(cfg.correspondence), "image_size": [cfg.data.width, cfg.data.height],
         "max_depth_mm": cfg.depth.max_depth_mm, "train_config": asdict(cfg),
         "data": {"sequences": [str(p) for p in sequences], "pairs_train": n_train, "pairs_val": n_val,

@@ -91,6 +91,12 @@ def test_bad_training_config(tmp_path, capsys):
     path.write_text("optim:\n  split: random\n")
     assert main(["train", "--config", str(path)]) == 2
     assert "'optim.split' must be sequence or pair" in capsys.readouterr().err
+    path.write_text("data:\n  reference: rendered\n")
+    assert main(["train", "--config", str(path)]) == 2
+    assert f"{path}: 'data.reference' must be frame or model" in capsys.readouterr().err
+    path.write_text("map:\n  min_depth_mm: -5\n")
+    assert main(["train", "--config", str(path)]) == 2
+    assert f"{path}: mapping: need 0 < min_depth_mm" in capsys.readouterr().err
 
 
 def _inputs(depth_ratio: float = 1.0) -> WeightInputs:
@@ -154,3 +160,38 @@ def test_pair_samples_with_the_generators_depth(tmp_path):
     assert not list((tmp_path / "cache").rglob("*.tmp"))
     assert errors["groundtruth"] < 0.1                           # mm: exact depth; what is left is the flow
     assert errors["stereo"] > 3 * errors["groundtruth"]            # 0.40 against 0.04 mm when written
+
+
+def test_pair_samples_against_model_views(tmp_path):
+    """``data.reference: model``: the reference is the surfel map fused at the ground-truth poses and
+    rendered at the reference frame's pose (what frame2model tracks against): with exact depth the true
+    pose still aligns the current points with the rendered ones, which are not the frame's own."""
+    from slam.synth import generate
+    from slam.training import build_pair_samples, load_train_config
+    from vo.lie import se3_exp
+
+    data = generate(tmp_path / "rigid", "rigid", frames=10, size=(96, 80), seed=5001)
+    path = tmp_path / "t.yaml"
+    path.write_text(yaml.safe_dump({**TINY, "data": {**TINY["data"], "cache_dir": str(tmp_path / "cache"),
+                                                     "pairs_per_sequence": 6}}))
+    per_reference = {}
+    for reference in ("frame", "model"):
+        cfg = load_train_config(path, ["depth.source=groundtruth", f"data.reference={reference}"])
+        samples = build_pair_samples(data, cfg)
+        assert len(samples) == 6
+        res = []
+        for s in samples:
+            T = se3_exp(s["p_gt"][None].double())[0].float()
+            moved = T[:3, :3] @ s["points_cur"] + T[:3, 3:]
+            res.append((moved - s["points_ref"])[:, s["valid3"]].norm(dim=0).median() * cfg.depth.max_depth_mm)
+        assert float(torch.stack(res).max()) < 0.2       # mm (0.13 at most when written)
+        per_reference[reference] = samples
+        again = build_pair_samples(data, cfg)             # cached under its own key
+        assert torch.equal(again[0]["points_ref"], samples[0]["points_ref"])
+    assert len(list((tmp_path / "cache" / "pairs").glob("*.pt"))) == 2
+    frame, model = per_reference["frame"], per_reference["model"]
+    assert [s["source"] for s in frame] == [s["source"] for s in model]   # the same pairs
+    differs = [float((f["points_ref"] - m["points_ref"]).abs().max()) for f, m in zip(frame, model)]
+    assert min(differs) > 0          # the rendered depth is the map's, not the frame's
+    assert not torch.equal(frame[0]["x3"], model[0]["x3"])
+
