@@ -258,8 +258,9 @@ def test_robust_3d_step_follows_the_reference_kind(synth_dir, tmp_path):
 
 
 def test_model_views_are_weighted_by_the_model_reference_networks(synth_dir, tmp_path):
-    """Against a view rendered from the map the packaged ``weights_2d3d_model.pt`` weighs the
-    pixels (README, "Training the weight networks"); against camera frames ``weights_2d3d.pt``.
+    """Against a view rendered from the map the packaged ``weights_2d3d_model.pt`` (trained against
+    such views) weighs the pixels (README, "Training the weight networks"); against camera frames
+    ``weights_2d3d.pt``.
     A checkpoint the user names is used for both unless ``checkpoint_model`` is named too."""
     from slam.config import load_config
     from slam.datasets import open_dataset
@@ -268,6 +269,8 @@ def test_model_views_are_weighted_by_the_model_reference_networks(synth_dir, tmp
 
     packaged = CHECKPOINT_DIR / "weights_2d3d_model.pt"
     assert model_reference_checkpoint("", "", "2d3d") == packaged and packaged.is_file()
+    # trained against model views (slam train --config configs/train_model.yaml)
+    assert torch.load(packaged, weights_only=False)["meta"]["reference"] == "model"
     assert model_reference_checkpoint("mine.pt", "", "2d3d") is None
     assert model_reference_checkpoint("mine.pt", "theirs.pt", "2d3d") == Path("theirs.pt")
     assert model_reference_checkpoint("", "", "3d") is None          # no model variant: the same networks

@@ -195,3 +195,27 @@ def test_pair_samples_against_model_views(tmp_path):
     assert min(differs) > 0          # the rendered depth is the map's, not the frame's
     assert not torch.equal(frame[0]["x3"], model[0]["x3"])
 
+
+
+def test_validation_loss_tool_reproduces_the_checkpoints_validation_loss(tmp_path, capsys):
+    """tools/validation_loss.py scores a checkpoint on the pairs `slam train` held out with the same
+    config: the checkpoint's own best validation loss and its w = 1 reference come out again."""
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    import validation_loss
+
+    ckpt = train_once(tmp_path, "a")
+    meta = torch.load(ckpt, weights_only=False)["meta"]
+    config = tmp_path / "a.yaml"
+    assert validation_loss.main(["--config", str(config), "--checkpoints", str(ckpt), "--out", str(tmp_path / "v")]) == 0
+    data = json.loads((tmp_path / "v" / "validation_loss.json").read_text())
+    assert data["pairs"] == meta["data"]["pairs_val"]
+    assert abs(data["loss"][str(ckpt)]["all"] - meta["val_loss"]) < 1e-9
+    assert abs(data["loss"]["w = 1"]["all"] - meta["val_loss_constant_w1"]) < 1e-9
+    assert set(data["loss"]["w = 1"]) == {"all", "rigid", "breathing"}     # one held-out sequence each
+    assert "| w = 1 |" in capsys.readouterr().out
+    assert validation_loss.main(["--config", str(config), "--checkpoints", str(tmp_path / "none.pt")]) == 2
+    assert "none.pt: checkpoint not found" in capsys.readouterr().err
