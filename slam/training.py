@@ -38,7 +38,8 @@ from vo.geometry import backproject
 from vo.lie import se3_log
 from vo.odometry import StereoOdometry, View, VOConfig
 from vo.residuals import PoseProblem
-from vo.weights import IN_CHANNELS, INPUT_VERSION, WeightInputs, WeightNetworks, network_inputs, sample_weights
+from vo.weights import (IN_CHANNELS, INPUT_VERSION, WeightInputs, WeightNetworks, load_weight_networks,
+                        network_inputs, sample_weights)
 
 log = logging.getLogger("slam.train")
 
@@ -105,6 +106,9 @@ class OptimConfig:
         seed: seeds sampling, splitting, initialisation and shuffling.
         grad_tol: the forward pass must reach |grad f| / f below this to contribute a gradient.
         threads: torch threads (0 = torch's default).
+        init: a checkpoint to start from instead of a random initialisation (fine-tuning, e.g. on
+            other data or another reference kind); its residuals, input layout, width and
+            downscale must be the config's.
     """
 
     epochs: int = 40
@@ -116,6 +120,7 @@ class OptimConfig:
     seed: int = 0
     grad_tol: float = 1e-3
     threads: int = 0
+    init: str = ""
 
 
 @dataclass
@@ -163,6 +168,8 @@ def load_train_config(path: str | Path, overrides: list[str] | None = None) -> T
         cfg.map.validate()
     except ValueError as err:
         raise ConfigError(f"{path}: {err}") from None
+    if cfg.optim.init:
+        check_init_checkpoint(cfg, path)
     if cfg.optim.split not in ("sequence", "pair"):
         raise ConfigError(f"{path}: 'optim.split' must be sequence or pair")
     if cfg.inputs not in IN_CHANNELS:
@@ -478,7 +485,7 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
     sequences, train_set, val = training_data(cfg, progress=progress and rank == 0)
     val_sequences = sorted({sequence_name(s) for s in val} - {sequence_name(s) for s in train_set})  # held out whole
 
-    nets = WeightNetworks(downscale=cfg.downscale, residuals=cfg.residuals, base=cfg.base, inputs=cfg.inputs)
+    nets = initial_networks(cfg)
     model = nets
     if world > 1:
         from torch.nn.parallel import DistributedDataParallel
@@ -536,6 +543,29 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
 
         dist.destroy_process_group()
     return ckpt_path
+
+
+def check_init_checkpoint(cfg: TrainConfig, config_path: Path) -> None:
+    """Raise :class:`ConfigError` unless ``optim.init`` is a checkpoint of the config's layout."""
+    path = Path(cfg.optim.init)
+    if not path.is_file():
+        raise ConfigError(f"{config_path}: optim.init checkpoint {path} not found")
+    meta = torch.load(path, map_location="cpu", weights_only=False).get("meta", {})
+    theirs = {"residuals": meta.get("residuals"), "inputs": int(meta.get("inputs", 1)),
+              "base": int(meta.get("base", 16)), "downscale": int(meta.get("downscale", 8))}
+    ours = {"residuals": cfg.residuals, "inputs": cfg.inputs, "base": cfg.base, "downscale": cfg.downscale}
+    if theirs != ours:
+        diff = ", ".join(f"{k} {theirs[k]} (config: {ours[k]})" for k in ours if theirs[k] != ours[k])
+        raise ConfigError(f"{path}: optim.init checkpoint has another layout: {diff}")
+
+
+def initial_networks(cfg: TrainConfig) -> WeightNetworks:
+    """Networks of the config's layout (checked by :func:`load_train_config`): randomly initialised
+    (seeded by the caller) or, with ``optim.init``, the weights of that checkpoint."""
+    nets = WeightNetworks(downscale=cfg.downscale, residuals=cfg.residuals, base=cfg.base, inputs=cfg.inputs)
+    if cfg.optim.init:
+        nets.load_state_dict(load_weight_networks(cfg.optim.init, cfg.residuals)[0].state_dict())
+    return nets
 
 
 def save_checkpoint(path: Path, cfg: TrainConfig, state: dict, sequences: list, n_train: int, n_val: int,

@@ -97,6 +97,9 @@ def test_bad_training_config(tmp_path, capsys):
     path.write_text("map:\n  min_depth_mm: -5\n")
     assert main(["train", "--config", str(path)]) == 2
     assert f"{path}: mapping: need 0 < min_depth_mm" in capsys.readouterr().err
+    path.write_text("optim:\n  init: nowhere.pt\n")
+    assert main(["train", "--config", str(path)]) == 2
+    assert f"{path}: optim.init checkpoint nowhere.pt not found" in capsys.readouterr().err
 
 
 def _inputs(depth_ratio: float = 1.0) -> WeightInputs:
@@ -219,3 +222,22 @@ def test_validation_loss_tool_reproduces_the_checkpoints_validation_loss(tmp_pat
     assert "| w = 1 |" in capsys.readouterr().out
     assert validation_loss.main(["--config", str(config), "--checkpoints", str(tmp_path / "none.pt")]) == 2
     assert "none.pt: checkpoint not found" in capsys.readouterr().err
+
+
+def test_fine_tuning_starts_from_the_named_checkpoint(tmp_path, capsys):
+    """`optim.init`: training starts from a checkpoint's weights (its validation loss is the new
+    run's epoch-0 loss on the same pairs); a checkpoint of another layout is a one-line error."""
+    first = train_once(tmp_path, "a")
+    meta = torch.load(first, weights_only=False)["meta"]
+    cfg = {**TINY, "optim": {**TINY["optim"], "epochs": 1, "init": str(first)},
+           "data": {**TINY["data"], "cache_dir": str(tmp_path / "cache")}}
+    path = tmp_path / "ft.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    assert main(["train", "--config", str(path), "--out", str(tmp_path / "ft")]) == 0
+    tuned = torch.load(tmp_path / "ft" / "weights_2d3d.pt", weights_only=False)["meta"]
+    assert abs(tuned["history"][0]["val"] - meta["val_loss"]) < 1e-9
+    assert tuned["train_config"]["optim"]["init"] == str(first)
+    capsys.readouterr()
+    assert main(["train", "--config", str(path), "--out", str(tmp_path / "ft2"), "--set", "residuals=2d"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()     # (before any pair is computed)
+    assert len(err) == 1 and f"{first}: optim.init checkpoint has another layout: residuals 2d3d (config: 2d)" in err[0]
