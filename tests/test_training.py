@@ -133,29 +133,41 @@ def test_checkpoint_of_the_previous_input_layout_still_loads(tmp_path):
     assert w2.shape == w3.shape == (1, 1, 64, 80)
 
 
+def _rigid_pairs_config(tmp_path, frames: int, pairs: int):
+    """A rigid synthetic sequence of ``frames`` frames and a tiny training config drawing ``pairs`` pairs."""
+    from slam.synth import generate
+
+    data = generate(tmp_path / "rigid", "rigid", frames=frames, size=(96, 80), seed=5001)
+    path = tmp_path / "t.yaml"
+    path.write_text(yaml.safe_dump({**TINY, "data": {**TINY["data"], "cache_dir": str(tmp_path / "cache"),
+                                                     "pairs_per_sequence": pairs}}))
+    return data, path
+
+
+def _residuals_at_true_pose_mm(samples: list[dict], max_depth_mm: float) -> torch.Tensor:
+    """Per sample, the median 3D residual (mm) of its valid pixels at the ground-truth pose."""
+    from vo.lie import se3_exp
+
+    res = []
+    for s in samples:
+        T = se3_exp(s["p_gt"][None].double())[0].float()
+        moved = T[:3, :3] @ s["points_cur"] + T[:3, 3:]
+        res.append((moved - s["points_ref"])[:, s["valid3"]].norm(dim=0).median() * max_depth_mm)
+    return torch.stack(res)
+
+
 def test_pair_samples_with_the_generators_depth(tmp_path):
     """``depth.source=groundtruth``: the pair samples' points are the exact depth back-projected, so
     at the true pose the 3D residual of a rigid scene is what the flow leaves (the stereo adds most of it)."""
-    from slam.synth import generate
     from slam.training import build_pair_samples, load_train_config
-    from vo.lie import se3_exp
 
-    data = generate(tmp_path / "rigid", "rigid", frames=6, size=(96, 80), seed=5001)
-    path = tmp_path / "t.yaml"
-    path.write_text(yaml.safe_dump({**TINY, "data": {**TINY["data"], "cache_dir": str(tmp_path / "cache"),
-                                                     "pairs_per_sequence": 4}}))
+    data, path = _rigid_pairs_config(tmp_path, frames=6, pairs=4)
     errors = {}
     for source in ("stereo", "groundtruth"):
         cfg = load_train_config(path, [f"depth.source={source}"])
         samples = build_pair_samples(data, cfg)
         assert samples
-        res = []
-        for s in samples:
-            T = se3_exp(s["p_gt"][None].double())[0].float()
-            moved = T[:3, :3] @ s["points_cur"] + T[:3, 3:]
-            ok = s["valid3"]
-            res.append((moved - s["points_ref"])[:, ok].norm(dim=0).median() * cfg.depth.max_depth_mm)
-        errors[source] = float(torch.stack(res).median())
+        errors[source] = float(_residuals_at_true_pose_mm(samples, cfg.depth.max_depth_mm).median())
         # the cache file is renamed into place (no half-written file for a second training to read)
         again = build_pair_samples(data, cfg)
         assert len(again) == len(samples) and torch.equal(again[0]["points_ref"], samples[0]["points_ref"])
@@ -169,25 +181,15 @@ def test_pair_samples_against_model_views(tmp_path):
     """``data.reference: model``: the reference is the surfel map fused at the ground-truth poses and
     rendered at the reference frame's pose (what frame2model tracks against): with exact depth the true
     pose still aligns the current points with the rendered ones, which are not the frame's own."""
-    from slam.synth import generate
     from slam.training import build_pair_samples, load_train_config
-    from vo.lie import se3_exp
 
-    data = generate(tmp_path / "rigid", "rigid", frames=10, size=(96, 80), seed=5001)
-    path = tmp_path / "t.yaml"
-    path.write_text(yaml.safe_dump({**TINY, "data": {**TINY["data"], "cache_dir": str(tmp_path / "cache"),
-                                                     "pairs_per_sequence": 6}}))
+    data, path = _rigid_pairs_config(tmp_path, frames=10, pairs=6)
     per_reference = {}
     for reference in ("frame", "model"):
         cfg = load_train_config(path, ["depth.source=groundtruth", f"data.reference={reference}"])
         samples = build_pair_samples(data, cfg)
         assert len(samples) == 6
-        res = []
-        for s in samples:
-            T = se3_exp(s["p_gt"][None].double())[0].float()
-            moved = T[:3, :3] @ s["points_cur"] + T[:3, 3:]
-            res.append((moved - s["points_ref"])[:, s["valid3"]].norm(dim=0).median() * cfg.depth.max_depth_mm)
-        assert float(torch.stack(res).max()) < 0.2       # mm (0.13 at most when written)
+        assert float(_residuals_at_true_pose_mm(samples, cfg.depth.max_depth_mm).max()) < 0.2   # (0.13 when written)
         per_reference[reference] = samples
         again = build_pair_samples(data, cfg)             # cached under its own key
         assert torch.equal(again[0]["points_ref"], samples[0]["points_ref"])
@@ -197,7 +199,6 @@ def test_pair_samples_against_model_views(tmp_path):
     differs = [float((f["points_ref"] - m["points_ref"]).abs().max()) for f, m in zip(frame, model)]
     assert min(differs) > 0          # the rendered depth is the map's, not the frame's
     assert not torch.equal(frame[0]["x3"], model[0]["x3"])
-
 
 
 def test_validation_loss_tool_reproduces_the_checkpoints_validation_loss(tmp_path, capsys):
