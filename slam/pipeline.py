@@ -247,8 +247,8 @@ class Pipeline:
         weight = None
         if w3d is not None and self.learned_fusion_weight:
             weight = normalised_fusion_weight(w3d[0, 0], valid)
-        self.map.fuse(view.depth[0, 0], self.exposure.colour(view), self.odometry.K, torch.as_tensor(pose_rect, dtype=torch.float32),
-                      frame_index=index, weight=weight, valid=valid)
+        self.map.fuse(view.depth[0, 0], self.exposure.colour(view), self.odometry.K,
+                      torch.as_tensor(pose_rect, dtype=torch.float32), frame_index=index, weight=weight, valid=valid)
         self._time("fusion", (time.perf_counter() - t0) * 1000.0)
 
     # --------------------------------------------------------------------------------------

@@ -574,7 +574,8 @@ def save_checkpoint(path: Path, cfg: TrainConfig, state: dict, sequences: list, 
     """Write the weights with everything needed to reproduce and use them. ``val_sequences``: the
     names of the sequences held out whole for validation (empty when pairs were split)."""
     meta = {
-        "residuals": cfg.residuals, "reference": cfg.data.reference, "downscale": cfg.downscale, "base": cfg.base, "inputs": cfg.inputs,
+        "residuals": cfg.residuals, "reference": cfg.data.reference, "downscale": cfg.downscale, "base": cfg.base,
+        "inputs": cfg.inputs,
         "correspondence": asdict(cfg.correspondence), "image_size": [cfg.data.width, cfg.data.height],
         "max_depth_mm": cfg.depth.max_depth_mm, "train_config": asdict(cfg),
         "data": {"sequences": [str(p) for p in sequences], "pairs_train": n_train, "pairs_val": n_val,
