@@ -269,8 +269,12 @@ def test_model_views_are_weighted_by_the_model_reference_networks(synth_dir, tmp
 
     packaged = CHECKPOINT_DIR / "weights_2d3d_model.pt"
     assert model_reference_checkpoint("", "", "2d3d") == packaged and packaged.is_file()
-    # trained against model views (slam train --config configs/train_model.yaml)
+    # trained against model views (slam train --config configs/train_model.yaml [--set residuals=2d])
     assert torch.load(packaged, weights_only=False)["meta"]["reference"] == "model"
+    packaged_2d = CHECKPOINT_DIR / "weights_2d_model.pt"
+    assert model_reference_checkpoint("", "", "2d") == packaged_2d
+    meta_2d = torch.load(packaged_2d, weights_only=False)["meta"]
+    assert meta_2d["reference"] == "model" and meta_2d["residuals"] == "2d"
     assert model_reference_checkpoint("mine.pt", "", "2d3d") is None
     assert model_reference_checkpoint("mine.pt", "theirs.pt", "2d3d") == Path("theirs.pt")
     assert model_reference_checkpoint("", "", "3d") is None          # no model variant: the same networks
