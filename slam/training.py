@@ -32,6 +32,7 @@ import yaml
 from mapping import MapConfig
 from slam.errors import ConfigError, SlamError
 from slam.frame_view import frame_view
+from slam.rectification import original_to_rect_pose
 from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
 from vo.ddn import declarative_pose
 from vo.geometry import backproject
@@ -168,12 +169,12 @@ def load_train_config(path: str | Path, overrides: list[str] | None = None) -> T
         cfg.map.validate()
     except ValueError as err:
         raise ConfigError(f"{path}: {err}") from None
-    if cfg.optim.init:
-        check_init_checkpoint(cfg, path)
     if cfg.optim.split not in ("sequence", "pair"):
         raise ConfigError(f"{path}: 'optim.split' must be sequence or pair")
     if cfg.inputs not in IN_CHANNELS:
         raise ConfigError(f"{path}: 'inputs' must be one of {', '.join(map(str, IN_CHANNELS))} (weight-network input versions)")
+    if cfg.optim.init:
+        check_init_checkpoint(cfg, path)
     return cfg
 
 
@@ -336,11 +337,10 @@ class ModelReference:
         self.cfg, self.odo = cfg, odo
         self.map = SurfelMap(cfg.map)
         self.exposure = FusionExposure(cfg.data.fuse_exposure)
-        M = np.eye(4)
-        M[:3, :3] = dataset.R1
-        self.poses = [torch.as_tensor(T @ M.T, dtype=torch.float32) for T in dataset.gt_poses]  # rectified T_wc
+        self.poses = torch.as_tensor(original_to_rect_pose(dataset.gt_poses, dataset.R1), dtype=torch.float32)
         self.size = (dataset.camera.height, dataset.camera.width)
         self.fused = -1
+        self.last: tuple[int, View | None] | None = None   # (frame, its model view): pairs share references
 
     def view_at(self, i: int, view) -> View | None:
         """The model view at frame ``i``'s pose after fusing frames ``0..i`` (``view(k)`` gives frame
@@ -348,18 +348,22 @@ class ModelReference:
         less than ``data.min_model_coverage`` of frame ``i``'s valid pixels."""
         from slam.pipeline import model_coverage
 
+        if self.last is not None and self.last[0] == i:
+            return self.last[1]     # the map has not changed since: the same render
         while self.fused < i:
             k = self.fused + 1
             v = view(k)
             self.map.fuse(v.depth[0, 0], self.exposure.colour(v), self.odo.K, self.poses[k], frame_index=k,
                           valid=v.valid[0, 0])
             self.fused = k
-        last = view(i)
+        frame = view(i)
         mv = self.map.render(self.odo.K, self.poses[i], *self.size, colour=False)
-        if model_coverage(mv.valid, last.valid[0, 0]) < self.cfg.data.min_model_coverage:
-            return None
-        mv.with_colour()
-        return self.odo.view_from_render(mv.color, mv.depth, mv.valid, background=last)
+        ref = None
+        if model_coverage(mv.valid, frame.valid[0, 0]) >= self.cfg.data.min_model_coverage:
+            mv.with_colour()
+            ref = self.odo.view_from_render(mv.color, mv.depth, mv.valid, background=frame)
+        self.last = (i, ref)
+        return ref
 
 
 def collate(samples: list[dict]) -> dict:

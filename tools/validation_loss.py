@@ -51,8 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         for path in args.checkpoints:
             if not Path(path).is_file():
                 raise SlamError(f"{path}: checkpoint not found")
-            nets, _ = load_weight_networks(path, cfg.residuals)
-            nets.eval()
+            nets, _ = load_weight_networks(path, cfg.residuals)     # (in eval mode)
             rows[path] = losses(nets, val, cfg)
     except SlamError as err:
         print(f"error: {err}", file=sys.stderr)
