@@ -110,6 +110,15 @@ class OptimConfig:
         init: a checkpoint to start from instead of a random initialisation (fine-tuning, e.g. on
             other data or another reference kind); its residuals, input layout, width and
             downscale must be the config's.
+        balance: how the pairs' losses are averaged. ``none``: the mean over all pairs (eq. 7);
+            scenarios with large pose errors (deforming, breathing) then dominate the gradient.
+            ``constant``: each pair's loss is divided by the mean loss of the constant weights
+            ``balance_weights`` over its scenario's training pairs, so every scenario counts by
+            how its error compares with the constant balance there; early stopping then follows
+            the mean over scenarios of (validation loss / the constant's validation loss). A
+            pair's scenario is its sequence folder's name up to the first underscore (the
+            synthetic sequences' scenario).
+        balance_weights: ``(w2D, w3D)`` of the constant reference of ``balance: constant``.
     """
 
     epochs: int = 40
@@ -122,6 +131,8 @@ class OptimConfig:
     grad_tol: float = 1e-3
     threads: int = 0
     init: str = ""
+    balance: str = "none"
+    balance_weights: list = field(default_factory=lambda: [1.0, 0.01])
 
 
 @dataclass
@@ -171,6 +182,11 @@ def load_train_config(path: str | Path, overrides: list[str] | None = None) -> T
         raise ConfigError(f"{path}: {err}") from None
     if cfg.optim.split not in ("sequence", "pair"):
         raise ConfigError(f"{path}: 'optim.split' must be sequence or pair")
+    if cfg.optim.balance not in ("none", "constant"):
+        raise ConfigError(f"{path}: 'optim.balance' must be none or constant")
+    if (len(cfg.optim.balance_weights) != 2 or not all(isinstance(w, (int, float)) for w in cfg.optim.balance_weights)
+            or min(cfg.optim.balance_weights) < 0 or max(cfg.optim.balance_weights) <= 0):
+        raise ConfigError(f"{path}: 'optim.balance_weights' must be two non-negative numbers [w2D, w3D], not both 0")
     if cfg.inputs not in IN_CHANNELS:
         raise ConfigError(f"{path}: 'inputs' must be one of {', '.join(map(str, IN_CHANNELS))} (weight-network input versions)")
     if cfg.optim.init:
@@ -407,6 +423,20 @@ def sequence_name(sample: dict) -> str:
     return sample["source"].rsplit(":", 1)[0]
 
 
+def scenario_of(sample: dict) -> str:
+    """The scenario a pair comes from: its sequence folder's name up to the first underscore
+    (``SCENARIO_sSEED_WxH_nN`` for the synthetic sequences)."""
+    return sequence_name(sample).split("_")[0]
+
+
+def by_scenario(samples: list[dict]) -> dict[str, list[dict]]:
+    """``samples`` grouped by :func:`scenario_of`, in order of first appearance."""
+    groups: dict[str, list[dict]] = {}
+    for s in samples:
+        groups.setdefault(scenario_of(s), []).append(s)
+    return groups
+
+
 def held_out_sequences(cfg: TrainConfig, n_sequences: int, rng: random.Random) -> set[int]:
     """Indices (into ``training_sequences``) of the validation sequences: in every scenario, the
     ``val_fraction`` share of its seeds (rounded; none when it has one), drawn by ``rng``; of the
@@ -438,9 +468,12 @@ def pose_from_batch(nets: WeightNetworks, batch: dict, cfg: TrainConfig, n2d: in
     return declarative_pose(w2, w3, prob, cfg.solver, cfg.optim.grad_tol)
 
 
-def l1_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
-    """Mean over the successful samples of ``|p* - p_gt|_1`` (eq. 7)."""
+def l1_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean over the successful samples of ``|p* - p_gt|_1`` (eq. 7), each multiplied by
+    ``scale`` (B,) when given (``optim.balance``)."""
     per = (p - p_gt).abs().sum(1)
+    if scale is not None:
+        per = per * scale
     return (per * ok).sum() / ok.sum().clamp(min=1)
 
 
@@ -467,6 +500,53 @@ def evaluate_loss(nets, samples: list[dict], cfg: TrainConfig, n2d: int | None =
             count += int(ok.sum())
             failed += int((~ok).sum())
     return total / max(count, 1), failed
+
+
+class ValidationObjective:
+    """What early stopping minimises, and each training pair's loss factor (``optim.balance``).
+
+    ``none``: the mean loss over the validation pairs; every factor is 1. ``constant``: the mean
+    over scenarios of (the scenario's validation loss / the constant weights' loss on its
+    validation pairs); a training pair's factor is 1 / the constant's mean loss over its
+    scenario's training pairs, normalised to a mean factor of 1 (so ``optim.lr`` keeps its scale).
+    """
+
+    def __init__(self, cfg: TrainConfig, train_set: list[dict], val: list[dict]):
+        self.cfg, self.val = cfg, val
+        self.balanced = cfg.optim.balance == "constant"
+        self.factors = torch.ones(len(train_set), dtype=torch.float64)
+        self.reference: dict[str, dict[str, float]] = {}
+        if not self.balanced:
+            return
+        const = tuple(float(w) for w in cfg.optim.balance_weights)
+        for name, group in (("train", train_set), ("val", val)):
+            self.reference[name] = {sc: evaluate_loss(None, g, cfg, constant=const)[0]
+                                    for sc, g in by_scenario(group).items()}
+        for name, ref in self.reference.items():
+            zero = [sc for sc, v in ref.items() if v <= 0.0]
+            if zero:
+                raise SlamError(f"training: constant weights {list(const)} solve every {name} pair of "
+                                f"{', '.join(zero)} exactly; optim.balance: constant needs a non-zero reference")
+        raw = torch.tensor([1.0 / self.reference["train"][scenario_of(s)] for s in train_set], dtype=torch.float64)
+        self.factors = raw / raw.mean()
+
+    def __call__(self, nets) -> tuple[float, float, int]:
+        """``(objective, mean validation loss, failed forward passes)`` of ``nets`` (the two are
+        the same number unless balanced)."""
+        if not self.balanced:
+            loss, failed = evaluate_loss(nets, self.val, self.cfg)
+            return loss, loss, failed
+        ratios, total, count, failed = [], 0.0, 0, 0
+        for sc, group in by_scenario(self.val).items():
+            loss, f = evaluate_loss(nets, group, self.cfg)
+            ratios.append(loss / self.reference["val"][sc])
+            total, count, failed = total + loss * (len(group) - f), count + len(group) - f, failed + f
+        return float(np.mean(ratios)), total / max(count, 1), failed
+
+    def meta(self) -> dict:
+        """What the checkpoint records about the objective."""
+        return {"balance": self.cfg.optim.balance, "balance_weights": list(self.cfg.optim.balance_weights),
+                "constant_loss_per_scenario": self.reference}
 
 
 def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
@@ -498,10 +578,11 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
     opt = torch.optim.Adam(model.parameters(), lr=cfg.optim.lr)
 
     baseline, _ = evaluate_loss(nets, val, cfg, constant=(1.0, 1.0))
-    best_val, _ = evaluate_loss(nets, val, cfg)
+    objective = ValidationObjective(cfg, train_set, val)
+    best_val, best_loss, _ = objective(nets)
     best_state = {k: v.clone() for k, v in nets.state_dict().items()}
     best_epoch, stale = 0, 0
-    history = [{"epoch": 0, "val": best_val}]
+    history = [{"epoch": 0, "val": best_val} | ({"val_loss": best_loss} if objective.balanced else {})]
     bar = tqdm(range(1, cfg.optim.epochs + 1), desc=f"train {cfg.residuals}", disable=not progress or rank != 0)
     bar.set_postfix(val=f"{best_val:.5f}", const=f"{baseline:.5f}")
     t0 = time.time()
@@ -512,36 +593,41 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
         perm = perm[rank::world]
         losses, failed = [], 0
         for k in range(0, len(perm), cfg.optim.batch_size):
-            batch = collate([train_set[m] for m in perm[k:k + cfg.optim.batch_size]])
+            idx = perm[k:k + cfg.optim.batch_size]
+            batch = collate([train_set[m] for m in idx])
             p, ok = pose_from_batch(model, batch, cfg)
             failed += int((~ok).sum())
-            loss = l1_pose_loss(p, batch["p_gt"], ok)
+            loss = l1_pose_loss(p, batch["p_gt"], ok, objective.factors[idx] if objective.balanced else None)
             opt.zero_grad()
             loss.backward()
             opt.step()
             losses.append(float(loss.detach()))
         nets.eval()
-        val_loss, val_failed = evaluate_loss(nets, val, cfg)
-        history.append({"epoch": epoch, "train": float(np.mean(losses)), "val": val_loss,
-                        "train_failed": failed, "val_failed": val_failed})
-        bar.set_postfix(train=f"{np.mean(losses):.5f}", val=f"{val_loss:.5f}", const=f"{baseline:.5f}")
-        if val_loss < best_val:
-            best_val, best_epoch, stale = val_loss, epoch, 0
+        val_score, val_loss, val_failed = objective(nets)
+        history.append({"epoch": epoch, "train": float(np.mean(losses)), "val": val_score,
+                        "train_failed": failed, "val_failed": val_failed}
+                       | ({"val_loss": val_loss} if objective.balanced else {}))
+        bar.set_postfix(train=f"{np.mean(losses):.5f}", val=f"{val_score:.5f}", const=f"{baseline:.5f}")
+        if val_score < best_val:
+            best_val, best_loss, best_epoch, stale = val_score, val_loss, epoch, 0
             best_state = {k: v.clone() for k, v in nets.state_dict().items()}
             if rank == 0:  # an interrupted training keeps its best checkpoint
                 save_checkpoint(out_dir / f"weights_{cfg.residuals}.pt", cfg, best_state, sequences, len(train_set),
-                                len(val), best_epoch, best_val, baseline, history, t0, final=False,
-                                val_sequences=val_sequences)
+                                len(val), best_epoch, best_loss, baseline, history, t0, final=False,
+                                val_sequences=val_sequences, objective=objective.meta() | {"best": best_val})
         else:
             stale += 1
             if stale >= cfg.optim.patience:
                 break
     ckpt_path = out_dir / f"weights_{cfg.residuals}.pt"
     if rank == 0:
-        save_checkpoint(ckpt_path, cfg, best_state, sequences, len(train_set), len(val), best_epoch, best_val,
-                        baseline, history, t0, final=True, val_sequences=val_sequences)
-        print(f"best validation loss {best_val:.5f} at epoch {best_epoch} (constant weights w=1: {baseline:.5f}); "
-              f"checkpoint {ckpt_path}")
+        save_checkpoint(ckpt_path, cfg, best_state, sequences, len(train_set), len(val), best_epoch, best_loss,
+                        baseline, history, t0, final=True, val_sequences=val_sequences,
+                        objective=objective.meta() | {"best": best_val})
+        balanced = (f"; mean over scenarios of loss / constant {list(cfg.optim.balance_weights)}: {best_val:.4f}"
+                    if objective.balanced else "")
+        print(f"best validation loss {best_loss:.5f} at epoch {best_epoch} (constant weights w=1: {baseline:.5f}"
+              f"{balanced}); checkpoint {ckpt_path}")
     if world > 1:
         import torch.distributed as dist
 
@@ -574,9 +660,10 @@ def initial_networks(cfg: TrainConfig) -> WeightNetworks:
 
 def save_checkpoint(path: Path, cfg: TrainConfig, state: dict, sequences: list, n_train: int, n_val: int,
                     best_epoch: int, best_val: float, baseline: float, history: list, t0: float, final: bool,
-                    val_sequences: list | None = None) -> None:
+                    val_sequences: list | None = None, objective: dict | None = None) -> None:
     """Write the weights with everything needed to reproduce and use them. ``val_sequences``: the
-    names of the sequences held out whole for validation (empty when pairs were split)."""
+    names of the sequences held out whole for validation (empty when pairs were split);
+    ``objective``: what early stopping minimised (``ValidationObjective.meta``)."""
     meta = {
         "residuals": cfg.residuals, "reference": cfg.data.reference, "downscale": cfg.downscale, "base": cfg.base,
         "inputs": cfg.inputs,
@@ -586,6 +673,7 @@ def save_checkpoint(path: Path, cfg: TrainConfig, state: dict, sequences: list, 
                  "validation_sequences": list(val_sequences or [])},
         "best_epoch": best_epoch, "val_loss": best_val, "val_loss_constant_w1": baseline,
         "history": history, "minutes": (time.time() - t0) / 60.0, "finished": final,
+        "objective": objective or {"balance": "none"},
     }
     tmp = path.with_suffix(".tmp")
     torch.save({"state_dict": state, "meta": meta}, tmp)

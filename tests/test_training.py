@@ -242,3 +242,57 @@ def test_fine_tuning_starts_from_the_named_checkpoint(tmp_path, capsys):
     assert main(["train", "--config", str(path), "--out", str(tmp_path / "ft2"), "--set", "residuals=2d"]) == 2
     err = capsys.readouterr().err.strip().splitlines()     # (before any pair is computed)
     assert len(err) == 1 and f"{first}: optim.init checkpoint has another layout: residuals 2d3d (config: 2d)" in err[0]
+
+
+def test_balanced_objective_weighs_each_scenario_against_the_constant(tmp_path, capsys):
+    """`optim.balance: constant`: a pair's loss is divided by the constant balance's mean loss on its
+    scenario (factors of mean 1), early stopping follows the mean over scenarios of loss / constant
+    on the validation pairs, and the checkpoint records both that objective and the plain loss."""
+    import json
+    import sys
+    from pathlib import Path
+
+    from slam.training import ValidationObjective, by_scenario, evaluate_loss, load_train_config, training_data
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    import validation_loss
+
+    cfg_dict = {**TINY, "optim": {**TINY["optim"], "epochs": 1, "balance": "constant", "balance_weights": [1.0, 0.01]},
+                "data": {**TINY["data"], "seeds": [5000, 5001], "pairs_per_sequence": 4,
+                         "cache_dir": str(tmp_path / "cache")}}
+    path = tmp_path / "bal.yaml"
+    path.write_text(yaml.safe_dump(cfg_dict))
+    cfg = load_train_config(path)
+    _, train_set, val = training_data(cfg, progress=False)
+    objective = ValidationObjective(cfg, train_set, val)
+    ref = objective.reference
+    assert set(ref["train"]) == set(ref["val"]) == {"rigid", "breathing"}
+    groups = by_scenario(train_set)
+    for sc, group in groups.items():
+        assert abs(ref["train"][sc] - evaluate_loss(None, group, cfg, constant=(1.0, 0.01))[0]) < 1e-12
+    assert abs(float(objective.factors.mean()) - 1.0) < 1e-12
+    first = {}
+    for k, s in enumerate(train_set):
+        first.setdefault(s["source"].split("_")[0], k)
+    f = {sc: float(objective.factors[k]) for sc, k in first.items()}
+    assert abs(f["rigid"] / f["breathing"] - ref["train"]["breathing"] / ref["train"]["rigid"]) < 1e-9
+    assert main(["train", "--config", str(path), "--out", str(tmp_path / "bal")]) == 0
+    ckpt = tmp_path / "bal" / "weights_2d3d.pt"
+    meta = torch.load(ckpt, weights_only=False)["meta"]
+    assert meta["objective"]["balance"] == "constant" and meta["objective"]["balance_weights"] == [1.0, 0.01]
+    capsys.readouterr()
+    assert validation_loss.main(["--config", str(path), "--checkpoints", str(ckpt), "--constants", "1,0.01",
+                                 "--out", str(tmp_path / "v")]) == 0
+    rows = json.loads((tmp_path / "v" / "validation_loss.json").read_text())["loss"]
+    net, const = rows[str(ckpt)], rows["w2D = 1, w3D = 0.01"]
+    for sc in ("rigid", "breathing"):
+        assert abs(const[sc] - meta["objective"]["constant_loss_per_scenario"]["val"][sc]) < 1e-12
+    balanced = (net["rigid"] / const["rigid"] + net["breathing"] / const["breathing"]) / 2
+    assert abs(balanced - meta["objective"]["best"]) < 1e-6 * balanced
+    assert abs(net["all"] - meta["val_loss"]) < 1e-6 * net["all"]
+    # bad values are one-line config errors
+    for text, msg in (("optim:\n  balance: scenario\n", "'optim.balance' must be none or constant"),
+                      ("optim:\n  balance_weights: [0, 0]\n", "'optim.balance_weights' must be two non-negative")):
+        path.write_text(text)
+        assert main(["train", "--config", str(path)]) == 2
+        assert f"{path}: {msg}" in capsys.readouterr().err

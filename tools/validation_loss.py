@@ -18,36 +18,45 @@ from pathlib import Path
 import torch
 
 from slam.errors import SlamError
-from slam.training import evaluate_loss, load_train_config, sequence_name, training_data
+from slam.training import by_scenario, evaluate_loss, load_train_config, training_data
 from vo.weights import load_weight_networks
-
-
-def scenario_of(sample: dict) -> str:
-    """The scenario a synthetic pair comes from (its sequence folder is ``SCENARIO_sSEED_...``)."""
-    return sequence_name(sample).split("_")[0]
 
 
 def losses(nets, samples: list[dict], cfg, constant: tuple[float, float] | None = None) -> dict:
     """``{"all": loss, SCENARIO: loss, ...}`` (mean L1 pose loss over the pairs whose solve succeeded)."""
-    groups = {"all": samples}
-    for s in samples:
-        groups.setdefault(scenario_of(s), []).append(s)
+    groups = {"all": samples} | by_scenario(samples)
     return {name: evaluate_loss(nets, group, cfg, constant=constant)[0] for name, group in groups.items()}
+
+
+def parse_constant(text: str) -> tuple[float, float]:
+    """``"W2D,W3D"`` -> ``(w2d, w3d)``; a one-line :class:`SlamError` otherwise."""
+    try:
+        w2, w3 = (float(v) for v in text.split(","))
+    except ValueError:
+        raise SlamError(f"--constants: expected W2D,W3D (e.g. 1,0.01), got {text!r}") from None
+    if min(w2, w3) < 0 or max(w2, w3) <= 0:
+        raise SlamError(f"--constants: {text!r}: weights must be non-negative and not both 0")
+    return w2, w3
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", required=True)
     ap.add_argument("--checkpoints", nargs="+", required=True)
+    ap.add_argument("--constants", nargs="*", default=[], metavar="W2D,W3D",
+                    help="extra rows of constant weights, e.g. 1,0.01 (the default config's balance)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     try:
+        constants = [parse_constant(c) for c in args.constants]
         cfg = load_train_config(args.config, args.set)
         if cfg.optim.threads > 0:
             torch.set_num_threads(cfg.optim.threads)
         _, _, val = training_data(cfg, progress=False)
         rows = {"w = 1": losses(None, val, cfg, constant=(1.0, 1.0))}
+        for w2, w3 in constants:
+            rows[f"w2D = {w2:g}, w3D = {w3:g}"] = losses(None, val, cfg, constant=(w2, w3))
         for path in args.checkpoints:
             if not Path(path).is_file():
                 raise SlamError(f"{path}: checkpoint not found")
