@@ -66,3 +66,27 @@ def test_weight_check_lists_every_learned_method():
     assert rows == ["| learned 2D&3D | breathing s1 | 0.50 | 0.0100 | 0.0200 | 0.50 | 0.50 |",
                     "| learned 3D | breathing s1 | 0.50 | 0.0200 | 0.0400 | 0.50 | - |",
                     "| learned 2D | breathing s1 | 0.50 | - | - | - | 0.90 |"]
+
+
+def test_paired_ratio_of_learned_against_the_best_constant(tmp_path, monkeypatch, capsys):
+    """The gap per scenario with its bootstrap interval over the sequences, resampled in pairs;
+    `--report DIR` rebuilds the tables of a finished run without running it."""
+    b = np.array([0.5, 1.0, 2.0, 0.8])
+    assert B.paired_ratio(2 * b, b) == (2.0, 2.0, 2.0)       # a constant ratio has no spread
+    rng = np.random.default_rng(1)
+    a = b * rng.uniform(0.8, 1.4, size=4)
+    ratio, lo, hi = B.paired_ratio(a, b)
+    assert abs(ratio - a.mean() / b.mean()) < 1e-12 and lo < ratio < hi
+    assert B.paired_ratio(a, b) == (ratio, lo, hi)              # seeded
+    results = [{"scenario": s, "seed": k, "method": m, "ate_rmse_mm": float(v), "rpe_trans_mm": 0.01, "w3d": None}
+               for s, f in (("breathing", 0.5), ("scanning", 1.0)) for k in range(4)
+               for m, v in (("best constant", b[k]), ("learned 2D&3D", f * b[k] * (1.2 if k == 0 else 1.0)))]
+    rows = B.paired_ratio_table(results, ["breathing", "scanning"], "learned 2D&3D", "best constant").splitlines()
+    assert rows[4].startswith("| breathing | 4 | 0.51 | ") and rows[4].endswith(" | 4 |")
+    assert rows[5].startswith("| scanning | 4 | 1.02 | 1.00 - ") and rows[5].endswith(" | 0 |")
+    (tmp_path / "scenarios.json").write_text(json.dumps(results))
+    monkeypatch.setattr(sys, "argv", ["benchmark_scenarios.py", "--report", str(tmp_path)])
+    B.main()
+    md = (tmp_path / "scenarios.md").read_text()
+    assert "| scanning | 4 | 1.02 |" in md and md.splitlines()[0] in capsys.readouterr().out
+    assert not (tmp_path / "runs").exists()                     # nothing was run

@@ -4,6 +4,7 @@ and macro averages, for constant and learned weights (ablation).
     .venv/bin/python tools/benchmark_scenarios.py [--scenarios breathing scanning deforming]
         [--seeds 9001 9002 9003 9101 ... 9107] [--frames 150] [--size 320x256] [--workers 2]
         [--out runs/scenarios] [--methods ...] [--checkpoints DIR] [--reuse EARLIER_OUT]
+    .venv/bin/python tools/benchmark_scenarios.py --report runs/scenarios   # the tables of a finished run
 
 Evaluation seeds are disjoint from the training seeds (configs/train.yaml, 1000+): 9001-9003 were
 fixed before any tuning (and later decisions were read off them), 9101-9107 were added unseen in
@@ -19,6 +20,9 @@ uses either. Methods:
 Sequences run in parallel worker processes. On breathing and deforming sequences it also reports
 the mean learned w3D on pixels whose tissue moved non-rigidly by more than 0.5 mm against the mean
 on the other pixels (the generator's ground truth, `nonrigid/`), and the same ratio for w2D.
+It also compares learned 2D&3D with the best constant per scenario: the ratio of their mean ATEs
+with a 95 % bootstrap interval over the sequences (resampled in pairs: the same seeds for both),
+so a gap the table shows can be told from the spread between sequences.
 """
 from __future__ import annotations
 
@@ -112,12 +116,20 @@ def main() -> None:
                          "(slam synth --breathing-follows-tissue)")
     ap.add_argument("--checkpoints", default=None,
                     help="folder with weights_{2d3d,2d,3d}.pt to use instead of the packaged checkpoints")
+    ap.add_argument("--report", default=None, metavar="DIR",
+                    help="print and rewrite the tables of the finished run in DIR (its scenarios.json); runs nothing")
     ap.add_argument("--reuse", default=None,
                     help="folder of an earlier run: its results for the methods not run now fill the table "
                          "(same sequences and settings assumed, e.g. the constant-weight rows)")
     args = ap.parse_args()
     # repeated names would run (and report) the same sequence twice
     args.scenarios, args.seeds, args.methods = (list(dict.fromkeys(v)) for v in (args.scenarios, args.seeds, args.methods))
+    if args.report:
+        results = json.loads((Path(args.report) / "scenarios.json").read_text())
+        scenarios = [s for s in args.scenarios if any(r["scenario"] == s for r in results)]
+        write_report(results, scenarios, [m for m in METHODS if any(r["method"] == m for r in results)],
+                     Path(args.report))
+        return
     w, h = (int(v) for v in args.size.split("x"))
     out = Path(args.out)
     jobs = []
@@ -147,16 +159,56 @@ def main() -> None:
                and (r["scenario"], r["seed"], r["method"]) not in done]
         results += old
         methods = [m for m in METHODS if m in {r["method"] for r in results}]
-    table = format_table(results, args.scenarios, methods)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "scenarios.json").write_text(json.dumps(results, indent=2))
+    write_report(results, args.scenarios, methods, out)
+
+
+def write_report(results: list[dict], scenarios: list[str], methods: list[str], out: Path) -> None:
+    """Print the tables and write them to ``out/scenarios.md``."""
+    table = format_table(results, scenarios, methods)
     table += "\n\nRelative pose error, translation (mm per frame):\n\n"
-    table += format_table(results, args.scenarios, methods, metric="rpe_trans_mm", digits=3)
+    table += format_table(results, scenarios, methods, metric="rpe_trans_mm", digits=3)
+    gap = paired_ratio_table(results, scenarios, "learned 2D&3D", "best constant")
+    if gap:
+        table += "\n\n" + gap
     print(table)
     weights = weight_check(results)
     if weights:
         print(weights)
-    out.mkdir(parents=True, exist_ok=True)
     (out / "scenarios.md").write_text(table + "\n\n" + weights + "\n")
-    (out / "scenarios.json").write_text(json.dumps(results, indent=2))
+
+
+def paired_ratio(a: np.ndarray, b: np.ndarray, n_boot: int = 10000, seed: int = 0) -> tuple[float, float, float]:
+    """``mean(a) / mean(b)`` and its 95 % bootstrap interval, resampling the index pairs ``(a[k], b[k])``
+    (the same sequences for both methods). ``a, b``: (N,) values per sequence."""
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(a), size=(n_boot, len(a)))
+    boot = a[idx].mean(1) / b[idx].mean(1)
+    lo, hi = np.percentile(boot, [2.5, 97.5])
+    return float(a.mean() / b.mean()), float(lo), float(hi)
+
+
+def paired_ratio_table(results: list[dict], scenarios: list[str], method: str, reference: str,
+                       metric: str = "ate_rmse_mm") -> str:
+    """Per scenario: ``method``'s mean ``metric`` over ``reference``'s on the sequences both ran, with
+    the bootstrap interval of :func:`paired_ratio` and how many sequences ``method`` did better on."""
+    lines = []
+    for s in scenarios:
+        mine = {r["seed"]: r[metric] for r in results if r["method"] == method and r["scenario"] == s}
+        theirs = {r["seed"]: r[metric] for r in results if r["method"] == reference and r["scenario"] == s}
+        seeds = sorted(set(mine) & set(theirs))
+        if len(seeds) < 2:
+            continue
+        a, b = np.array([mine[k] for k in seeds]), np.array([theirs[k] for k in seeds])
+        ratio, lo, hi = paired_ratio(a, b)
+        lines.append(f"| {s} | {len(seeds)} | {ratio:.2f} | {lo:.2f} - {hi:.2f} | {int((a < b).sum())} |")
+    if not lines:
+        return ""
+    return "\n".join([f"{method} against {reference} (ATE ratio of the means; 95 % bootstrap interval over the "
+                      f"sequences, resampled in pairs):", "",
+                      "| scenario | sequences | ratio | 95 % interval | sequences better |", "|---|---|---|---|---|",
+                      *lines])
 
 
 def format_table(results: list[dict], scenarios: list[str], methods: list[str], metric: str = "ate_rmse_mm",
