@@ -90,3 +90,18 @@ def test_paired_ratio_of_learned_against_the_best_constant(tmp_path, monkeypatch
     md = (tmp_path / "scenarios.md").read_text()
     assert "| scanning | 4 | 1.02 |" in md and md.splitlines()[0] in capsys.readouterr().out
     assert not (tmp_path / "runs").exists()                     # nothing was run
+
+
+def test_weight_ratio_summary_covers_scanning_too():
+    def stats(moving, still, w2m=None, w2s=None):
+        return {"moving": moving, "still": still, "w2d_moving": w2m, "w2d_still": w2s, "fraction_moving": 0.5}
+
+    results = [{"scenario": "breathing", "seed": k, "method": "learned 2D&3D", "w3d": stats(0.01 * k, 0.02, 0.3, 0.6)}
+               for k in (1, 2, 3)]
+    results += [{"scenario": "scanning", "seed": 1, "method": "learned 2D&3D", "w3d": stats(0.01, 0.01, 0.5, 0.5)},
+                {"scenario": "scanning", "seed": 1, "method": "learned 2D", "w3d": stats(None, None, 0.4, 0.5)},
+                {"scenario": "scanning", "seed": 1, "method": "w = 1", "w3d": None}]
+    rows = B.weight_ratio_summary(results, ["breathing", "scanning"]).splitlines()[2:]
+    assert rows == ["| learned 2D&3D | breathing | 3 | 1.00 (0.50-1.50) | 0.50 (0.50-0.50) |",
+                    "| learned 2D&3D | scanning | 1 | 1.00 (1.00-1.00) | 1.00 (1.00-1.00) |",
+                    "| learned 2D | scanning | 1 | - | 0.80 (0.80-0.80) |"]

@@ -174,6 +174,9 @@ def write_report(results: list[dict], scenarios: list[str], methods: list[str], 
         table += "\n\n" + gap
     print(table)
     weights = weight_check(results)
+    summary = weight_ratio_summary(results, scenarios)
+    if summary:
+        weights = (weights + "\n\n" + summary) if weights else summary
     if weights:
         print(weights)
     (out / "scenarios.md").write_text(table + "\n\n" + weights + "\n")
@@ -252,6 +255,26 @@ def weight_check(results: list[dict]) -> str:
         return ""
     return "\n".join(["| method | sequence | share of pixels non-rigid > 0.5 mm | mean w3D, non-rigid | mean w3D, other "
                       "| w3D ratio | w2D ratio |", "|---|---|---|---|---|---|---|", *lines])
+
+
+def weight_ratio_summary(results: list[dict], scenarios: list[str]) -> str:
+    """Per learned method and scenario (scanning too): the median and range over the sequences of the
+    w3D and w2D ratios (non-rigid > 0.5 mm / the rest). On scanning the camera's own flow can hide
+    the breathing that the ratios show on a static camera."""
+    lines = []
+    for method in ["learned 2D&3D", "learned 3D", "learned 2D"]:
+        for s in scenarios:
+            stats = [r["w3d"] for r in results if r["method"] == method and r["scenario"] == s and r.get("w3d")]
+            cells = []
+            for hi, lo in (("moving", "still"), ("w2d_moving", "w2d_still")):
+                v = [w[hi] / w[lo] for w in stats if w.get(hi) is not None and w.get(lo)]
+                cells.append(f"{np.median(v):.2f} ({min(v):.2f}-{max(v):.2f})" if v else "-")
+            if stats and cells != ["-", "-"]:
+                lines.append(f"| {method} | {s} | {len(stats)} | {cells[0]} | {cells[1]} |")
+    if not lines:
+        return ""
+    return "\n".join(["| method | scenario | sequences | w3D ratio, median (range) | w2D ratio, median (range) |",
+                      "|---|---|---|---|---|", *lines])
 
 
 if __name__ == "__main__":
