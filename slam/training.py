@@ -292,9 +292,11 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
         if ref is None:
             continue
         flow, flow_ok = odo._correspondences(cur, ref, None, 0.0)    # as tracking computes them
-        target, valid, valid3, points_ref = odo.build_problem(cur, ref, flow, flow_ok)
+        problem = odo.build_problem(cur, ref, flow, flow_ok)
+        target, valid, valid3, points_ref = problem
+        rigid = odo.rigid_flow(cur, flow, problem) if cfg.inputs >= 3 else None     # as tracking computes it
         _, x3 = network_inputs(WeightInputs(cur.image, cur.depth / dmax, flow, cur.parallax,
-                                            ref.image, ref.depth / dmax, ref.parallax, valid), cfg.downscale,
+                                            ref.image, ref.depth / dmax, ref.parallax, valid, rigid), cfg.downscale,
                               cfg.inputs)
         idx = valid.flatten().nonzero().squeeze(1)
         n = cfg.data.pixels_per_pair

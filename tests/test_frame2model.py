@@ -286,9 +286,10 @@ def test_model_views_are_weighted_by_the_model_reference_networks(synth_dir, tmp
     assert odo.model_weight_networks is not None
     views = [odo.make_view(ds.frame(k).left, ds.frame(k).right) for k in (0, 1)]
     flow, fb_ok = odo._correspondences(views[1], views[0], None, 0.0)
-    _, valid, _, _ = odo.build_problem(views[1], views[0], flow, fb_ok)
-    cam = odo._weights(views[1], views[0], flow, valid, model_reference=False)
-    model = odo._weights(views[1], views[0], flow, valid, model_reference=True)
+    problem = odo.build_problem(views[1], views[0], flow, fb_ok)
+    valid = problem[1]
+    cam = odo._weights(views[1], views[0], flow, problem, model_reference=False)
+    model = odo._weights(views[1], views[0], flow, problem, model_reference=True)
     assert not torch.allclose(cam[0], model[0]) and not torch.allclose(cam[1], model[1])
     assert torch.equal(cam[0], odo.weight_networks(_weight_inputs(odo, views[1], views[0], flow, valid))[0])
 

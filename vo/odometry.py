@@ -24,7 +24,7 @@ from vo.geometry import backproject, flow_grid, lands_inside, pixel_grid, sample
 from vo.lie import rotation_angle_deg
 from vo.residuals import PoseProblem, residuals
 from vo.solver import solve_pose
-from vo.weights import (WeightInputs, WeightNetworks, constant_weights, load_weight_networks,
+from vo.weights import (WeightInputs, WeightNetworks, constant_weights, load_weight_networks, rigid_prior_flow,
                         model_reference_checkpoint)
 
 
@@ -249,18 +249,42 @@ class StereoOdometry:
                     rendered=color is not None)
 
     # ---------------------------------------------------------------- tracking
-    def _weights(self, cur: View, ref: View, flow: torch.Tensor, valid: torch.Tensor,
+    def _weights(self, cur: View, ref: View, flow: torch.Tensor, problem: tuple,
                  model_reference: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """``problem``: :meth:`build_problem`'s ``(target, valid, valid3, points_ref)``."""
         wcfg = self.config.weights
+        valid = problem[1]
         if self.weight_networks is None:
             return constant_weights(valid, wcfg.w2d, wcfg.w3d, wcfg.residuals)
         networks = self.model_weight_networks if model_reference and self.model_weight_networks is not None \
             else self.weight_networks
         dmax = self.config.depth.max_depth_mm
+        rigid = self.rigid_flow(cur, flow, problem) if networks.inputs >= 3 else None
         inp = WeightInputs(image_cur=cur.image, depth_cur=cur.depth / dmax, flow=flow, parallax_cur=cur.parallax,
-                           image_ref=ref.image, depth_ref=ref.depth / dmax, parallax_ref=ref.parallax, valid=valid)
+                           image_ref=ref.image, depth_ref=ref.depth / dmax, parallax_ref=ref.parallax, valid=valid,
+                           rigid_flow=rigid)
         with torch.inference_mode():
             return networks(inp)
+
+    def rigid_flow(self, cur: View, flow: torch.Tensor, problem: tuple) -> torch.Tensor:
+        """``(1, 2, H, W)``: the flow of the rigid motion solved with the constant weights
+        (``weights.w2d`` / ``w3d``, both residuals), the input of layout-3 weight networks; the
+        measured flow itself (a zero residual) where that solve has too few pixels or fails."""
+        target, valid, valid3, points_ref = problem
+        wcfg, scfg = self.config.weights, self.config.solver
+        dmax = self.config.depth.max_depth_mm
+        w2, w3 = constant_weights(valid, wcfg.w2d, wcfg.w3d, "2d3d")
+        points_cur = backproject(cur.depth / dmax, self.K)
+        s2, s3 = PoseProblem.scales(*flow.shape[-2:])
+        prob = PoseProblem(points_cur=points_cur.flatten(2), target_px=target.flatten(2),
+                           points_ref=points_ref.flatten(2), w2d=w2.flatten(1), w3d=(w3 * valid3).flatten(1),
+                           K=self.K[None], s2=s2, s3=s3).compact()
+        if prob.w2d.shape[1] < scfg.min_valid_pixels:
+            return flow
+        T = solve_pose(prob.subsample(scfg.max_pixels), scfg).T
+        if not bool(torch.isfinite(T).all()):
+            return flow
+        return rigid_prior_flow(points_cur, flow, T, self.K)
 
     def build_problem(self, cur: View, ref: View, flow: torch.Tensor, flow_valid: torch.Tensor | None = None):
         """The pose problem of ``cur`` against ``ref`` given the temporal flow.
@@ -307,8 +331,9 @@ class StereoOdometry:
         t0 = time.perf_counter()
         flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
         t1 = time.perf_counter()
-        target, valid, valid3, points_ref = self.build_problem(cur, ref, flow, fb_ok)
-        w2d, w3d = self._weights(cur, ref, flow, valid, model_reference)
+        problem = self.build_problem(cur, ref, flow, fb_ok)
+        target, valid, valid3, points_ref = problem
+        w2d, w3d = self._weights(cur, ref, flow, problem, model_reference)
         w3d = w3d * valid3
         if self.weight_hook is not None:
             w2d, w3d = self.weight_hook(cur, ref, flow, w2d, w3d)
@@ -428,8 +453,9 @@ class StereoOdometry:
         t0 = time.perf_counter()
         flow, fb_ok = self._correspondences(cur, ref, None, 0.0)
         t1 = time.perf_counter()
-        _, valid, valid3, _ = self.build_problem(cur, ref, flow, fb_ok)
-        w2d, w3d = self._weights(cur, ref, flow, valid)
+        problem = self.build_problem(cur, ref, flow, fb_ok)
+        w2d, w3d = self._weights(cur, ref, flow, problem)
+        valid3 = problem[2]
         if timings is not None:
             timings.update(flow=(t1 - t0) * 1000.0, weights=(time.perf_counter() - t1) * 1000.0)
         return w2d, w3d * valid3

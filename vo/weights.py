@@ -13,6 +13,11 @@ Inputs of the networks (all at 1/``downscale`` of the image, area-averaged), lay
 The last two groups make the non-rigid motion visible at the scale it has between frames (about
 0.02-0.1 mm, 0.1-0.4 px at 25 fps on our synthetic tissue); on the version-1 scales (kept for old
 checkpoints: 11 and 17 channels, without them) a 0.06 mm depth change is 2e-4 of the depth input.
+Layout version 3 (an experiment, stop 24) adds, after the sub-pixel flow, the flow's residual
+against the rigid motion of a first solve with the constant weights, ``asinh((F_t - F_rigid) / 0.5
+px)`` (2; ``WeightInputs.rigid_flow``): where the camera moves, its own flow hides the tissue's
+sub-pixel non-rigid motion in F_t; the residual shows it as it shows on a static camera. 15 and 22
+channels.
 Flows are scaled by ``20 / W`` (a flow of 5 % of the width is 1); the vertical parallax by ``W0 / (2 W)``
 with ``W0 = 640`` (2 px at the paper's resolution is 1).
 """
@@ -29,7 +34,7 @@ import torch.nn.functional as F
 from vo.geometry import sample_by_flow
 
 INPUT_VERSION = 2
-IN_CHANNELS = {1: (11, 17), 2: (13, 20)}  # input layout version -> (w2D, w3D) channels
+IN_CHANNELS = {1: (11, 17), 2: (13, 20), 3: (15, 22)}  # input layout version -> (w2D, w3D) channels
 IN_CHANNELS_2D, IN_CHANNELS_3D = IN_CHANNELS[INPUT_VERSION]
 FLOW_FINE_PX = 0.5  # sub-pixel flow scale of the version-2 inputs
 DEPTH_CHANGE_REL = 0.003  # relative depth change scale (0.2 mm at 70 mm, the stereo noise at 1/8)
@@ -46,6 +51,8 @@ class WeightInputs:
         flow: ``(B, 2, H, W)`` temporal flow current -> reference (pixels).
         parallax_cur, parallax_ref: ``(B, 2, H, W)`` stereo parallax flows (pixels).
         valid: ``(B, 1, H, W)`` bool pixels that enter the objective.
+        rigid_flow: ``(B, 2, H, W)`` the flow a rigid motion fitted with constant weights predicts
+            (pixels; layout version 3 only, see :func:`rigid_prior_flow`).
     """
 
     image_cur: torch.Tensor
@@ -56,6 +63,7 @@ class WeightInputs:
     depth_ref: torch.Tensor
     parallax_ref: torch.Tensor
     valid: torch.Tensor
+    rigid_flow: torch.Tensor | None = None
 
 
 def _scale_flow(flow: torch.Tensor, width: int) -> torch.Tensor:
@@ -102,8 +110,33 @@ def network_inputs(inp: WeightInputs, downscale: int, version: int = INPUT_VERSI
     both = inp.valid & (inp.depth_cur > 0) & (warped[:, 1:2] > 0.999)
     rel = torch.where(both, (inp.depth_cur - warped[:, 0:1]) / inp.depth_cur.clamp(min=1e-6), torch.zeros_like(inp.depth_cur))
     change = torch.asinh(_downsample(rel, (h, w)) / DEPTH_CHANGE_REL)
-    x3 = torch.cat([coords, cur, flow_fine, ref_warped, change], 1)
-    return x3[:, :IN_CHANNELS[2][0]], x3
+    if version == 2:
+        x3 = torch.cat([coords, cur, flow_fine, ref_warped, change], 1)
+        return x3[:, :IN_CHANNELS[2][0]], x3
+    if inp.rigid_flow is None:
+        raise ValueError("weight-network inputs of version 3 need the rigid prior flow (WeightInputs.rigid_flow)")
+    nonrigid = torch.asinh(_downsample(inp.flow - inp.rigid_flow, (h, w)) / FLOW_FINE_PX)
+    x3 = torch.cat([coords, cur, flow_fine, nonrigid, ref_warped, change], 1)
+    return x3[:, :IN_CHANNELS[3][0]], x3
+
+
+def rigid_prior_flow(points_cur: torch.Tensor, flow: torch.Tensor, T: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """The flow the rigid motion ``T`` predicts for every current pixel.
+
+    Args:
+        points_cur: ``(B, 3, H, W)`` current points (any unit; depth 0 where invalid).
+        flow: ``(B, 2, H, W)`` the measured flow, returned where the depth is invalid (residual 0).
+        T: ``(B, 4, 4)`` current -> reference camera, translation in the unit of ``points_cur``.
+        K: ``(3, 3)`` intrinsics.
+    """
+    from vo.geometry import pixel_grid, project
+
+    B, _, H, W = points_cur.shape
+    moved = torch.einsum("bij,bjhw->bihw", T[:, :3, :3].to(points_cur.dtype), points_cur) \
+        + T[:, :3, 3].to(points_cur.dtype).view(B, 3, 1, 1)
+    ok = (points_cur[:, 2:3] > 0) & (moved[:, 2:3] > 1e-6)
+    predicted = project(moved, K.to(points_cur.dtype)) - pixel_grid(H, W, points_cur.device, points_cur.dtype)
+    return torch.where(ok, predicted, flow)
 
 
 class _Block(nn.Sequential):
