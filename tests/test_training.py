@@ -114,7 +114,9 @@ def _inputs(depth_ratio: float = 1.0) -> WeightInputs:
 
 def test_network_inputs_layouts_and_depth_change():
     for version, (c2, c3) in IN_CHANNELS.items():
-        x2, x3 = network_inputs(_inputs(), 8, version)
+        inp = _inputs()
+        inp.rigid_flow = torch.zeros_like(inp.flow)     # (layout 3's rigid prior flow)
+        x2, x3 = network_inputs(inp, 8, version)
         assert x2.shape == (1, c2, 8, 10) and x3.shape == (1, c3, 8, 10)
         assert torch.equal(x2, x3[:, :c2])
     # the same depth in both views: no change; the current view 1 % farther: asinh(0.01 / scale)

@@ -31,7 +31,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from vo.geometry import sample_by_flow
+from vo.geometry import pixel_grid, project, sample_by_flow
 
 INPUT_VERSION = 2
 IN_CHANNELS = {1: (11, 17), 2: (13, 20), 3: (15, 22)}  # input layout version -> (w2D, w3D) channels
@@ -129,8 +129,6 @@ def rigid_prior_flow(points_cur: torch.Tensor, flow: torch.Tensor, T: torch.Tens
         T: ``(B, 4, 4)`` current -> reference camera, translation in the unit of ``points_cur``.
         K: ``(3, 3)`` intrinsics.
     """
-    from vo.geometry import pixel_grid, project
-
     B, _, H, W = points_cur.shape
     moved = torch.einsum("bij,bjhw->bihw", T[:, :3, :3].to(points_cur.dtype), points_cur) \
         + T[:, :3, 3].to(points_cur.dtype).view(B, 3, 1, 1)
