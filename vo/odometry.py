@@ -275,16 +275,22 @@ class StereoOdometry:
         dmax = self.config.depth.max_depth_mm
         w2, w3 = constant_weights(valid, wcfg.w2d, wcfg.w3d, "2d3d")
         points_cur = backproject(cur.depth / dmax, self.K)
-        s2, s3 = PoseProblem.scales(*flow.shape[-2:])
-        prob = PoseProblem(points_cur=points_cur.flatten(2), target_px=target.flatten(2),
-                           points_ref=points_ref.flatten(2), w2d=w2.flatten(1), w3d=(w3 * valid3).flatten(1),
-                           K=self.K[None], s2=s2, s3=s3).compact()
+        prob = self._pose_problem(points_cur, target, points_ref, w2, w3 * valid3)
         if prob.w2d.shape[1] < scfg.min_valid_pixels:
             return flow
         T = solve_pose(prob.subsample(scfg.max_pixels), scfg).T
         if not bool(torch.isfinite(T).all()):
             return flow
         return rigid_prior_flow(points_cur, flow, T, self.K)
+
+    def _pose_problem(self, points_cur: torch.Tensor, target: torch.Tensor, points_ref: torch.Tensor,
+                      w2d: torch.Tensor, w3d: torch.Tensor) -> PoseProblem:
+        """The objective over every pixel with a non-zero weight: ``points_cur``, ``points_ref``
+        ``(1, 3, H, W)`` (normalised), ``target`` ``(1, 2, H, W)`` pixels, weights ``(1, 1, H, W)``."""
+        s2, s3 = PoseProblem.scales(*target.shape[-2:])
+        return PoseProblem(points_cur=points_cur.flatten(2), target_px=target.flatten(2),
+                           points_ref=points_ref.flatten(2), w2d=w2d.flatten(1), w3d=w3d.flatten(1),
+                           K=self.K[None], s2=s2, s3=s3).compact()
 
     def build_problem(self, cur: View, ref: View, flow: torch.Tensor, flow_valid: torch.Tensor | None = None):
         """The pose problem of ``cur`` against ``ref`` given the temporal flow.
@@ -339,13 +345,7 @@ class StereoOdometry:
             w2d, w3d = self.weight_hook(cur, ref, flow, w2d, w3d)
         t2 = time.perf_counter()
         dmax = self.config.depth.max_depth_mm
-        s2, s3 = PoseProblem.scales(*flow.shape[-2:])
-        prob = PoseProblem(
-            points_cur=backproject(cur.depth / dmax, self.K).flatten(2),
-            target_px=target.flatten(2),
-            points_ref=points_ref.flatten(2),
-            w2d=w2d.flatten(1), w3d=w3d.flatten(1), K=self.K[None], s2=s2, s3=s3,
-        ).compact()
+        prob = self._pose_problem(backproject(cur.depth / dmax, self.K), target, points_ref, w2d, w3d)
         n_valid = int(prob.w2d.shape[1])
         prob = prob.subsample(self.config.solver.max_pixels)
         scfg = self.config.solver
