@@ -159,7 +159,9 @@ class Pipeline:
         self.gt_poses_only = config.tracking.poses == "groundtruth"
         if self.gt_poses_only and dataset.gt_poses is None:
             raise SlamError(f"{dataset.path}: tracking.poses=groundtruth needs a ground-truth trajectory")
-        if mode == "frame2model" or config.tracking.export_map or self.gt_poses_only:
+        # layout-4 weight networks compare each reference with the map: frame2frame keeps one too
+        self.map_depth_for_weights = self.odometry.needs_map_depth()
+        if mode == "frame2model" or config.tracking.export_map or self.gt_poses_only or self.map_depth_for_weights:
             from mapping import SurfelMap
 
             self.map = SurfelMap(config.map, device=config.device)
@@ -247,9 +249,15 @@ class Pipeline:
         weight = None
         if w3d is not None and self.learned_fusion_weight:
             weight = normalised_fusion_weight(w3d[0, 0], valid)
-        self.map.fuse(view.depth[0, 0], self.exposure.colour(view), self.odometry.K,
-                      torch.as_tensor(pose_rect, dtype=torch.float32), frame_index=index, weight=weight, valid=valid)
+        pose = torch.as_tensor(pose_rect, dtype=torch.float32)
+        self.map.fuse(view.depth[0, 0], self.exposure.colour(view), self.odometry.K, pose, frame_index=index,
+                      weight=weight, valid=valid)
         self._time("fusion", (time.perf_counter() - t0) * 1000.0)
+        if self.map_depth_for_weights:      # the view is the next reference: its standing off the map
+            t0 = time.perf_counter()
+            mv = self.map.render(self.odometry.K, pose, self.camera.height, self.camera.width, colour=False)
+            view.model_depth = torch.where(mv.valid, mv.depth, torch.zeros_like(mv.depth)).reshape(view.depth.shape)
+            self._time("render", (time.perf_counter() - t0) * 1000.0)
 
     # --------------------------------------------------------------------------------------
     def run(self, progress: bool = True) -> RunResult:

@@ -40,6 +40,7 @@ from vo.lie import se3_log
 from vo.odometry import StereoOdometry, View, VOConfig
 from vo.residuals import PoseProblem
 from vo.weights import (IN_CHANNELS, INPUT_VERSION, WeightInputs, WeightNetworks, load_weight_networks,
+                        uses_map_depth, uses_rigid_flow,
                         network_inputs, sample_weights)
 
 log = logging.getLogger("slam.train")
@@ -254,7 +255,7 @@ def _cache_key(cfg: TrainConfig, path: Path) -> str:
     relevant = {"seq": str(path.resolve()), "data": data, "corr": asdict(cfg.correspondence),
                 "depth": asdict(cfg.depth), "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 2,
                 "inputs": cfg.inputs}
-    if cfg.data.reference == "model":
+    if cfg.data.reference == "model" or uses_map_depth(cfg.inputs):
         relevant["map"] = asdict(cfg.map)
     return hashlib.sha1(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:12]
 
@@ -283,21 +284,27 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
             views[k] = frame_view(odo, dataset.frame(k), path)   # depth.source: stereo or the generator's
         return views[k]
 
-    model = ModelReference(cfg, odo, dataset) if cfg.data.reference == "model" else None
+    # model references, or frame references that layout-4 networks compare with the map
+    model = ModelReference(cfg, odo, dataset) if cfg.data.reference == "model" or uses_map_depth(cfg.inputs) else None
+    model_refs = cfg.data.reference == "model"
     samples = []
     g = torch.Generator().manual_seed(rng.randrange(2**31))
     for i, j, moving in sample_pairs(dataset.gt_poses, dataset.R1, cfg.data, rng):
         cur = view(j)
-        ref = view(i) if model is None else model.view_at(i, view)
+        ref = model.view_at(i, view) if model_refs else view(i)
         if ref is None:
             continue
+        model_depth = None
+        if uses_map_depth(cfg.inputs):      # as the pipeline sets View.model_depth (a model view has none)
+            model_depth = torch.zeros_like(ref.depth) if model_refs else model.depth_at(i, view)
         flow, flow_ok = odo._correspondences(cur, ref, None, 0.0)    # as tracking computes them
         problem = odo.build_problem(cur, ref, flow, flow_ok)
         target, valid, valid3, points_ref = problem
-        rigid = odo.rigid_flow(cur, flow, problem) if cfg.inputs >= 3 else None     # as tracking computes it
+        rigid = odo.rigid_flow(cur, flow, problem) if uses_rigid_flow(cfg.inputs) else None  # as tracking computes it
         _, x3 = network_inputs(WeightInputs(cur.image, cur.depth / dmax, flow, cur.parallax,
-                                            ref.image, ref.depth / dmax, ref.parallax, valid, rigid), cfg.downscale,
-                              cfg.inputs)
+                                            ref.image, ref.depth / dmax, ref.parallax, valid, rigid,
+                                            None if model_depth is None else model_depth / dmax),
+                               cfg.downscale, cfg.inputs)
         idx = valid.flatten().nonzero().squeeze(1)
         n = cfg.data.pixels_per_pair
         if idx.numel() < 64:
@@ -359,6 +366,7 @@ class ModelReference:
         self.size = (dataset.camera.height, dataset.camera.width)
         self.fused = -1
         self.last: tuple[int, View | None] | None = None   # (frame, its model view): pairs share references
+        self.last_depth: tuple[int, torch.Tensor] | None = None   # (frame, the map's depth there)
 
     def view_at(self, i: int, view) -> View | None:
         """The model view at frame ``i``'s pose after fusing frames ``0..i`` (``view(k)`` gives frame
@@ -368,20 +376,31 @@ class ModelReference:
 
         if self.last is not None and self.last[0] == i:
             return self.last[1]     # the map has not changed since: the same render
-        while self.fused < i:
-            k = self.fused + 1
-            v = view(k)
-            self.map.fuse(v.depth[0, 0], self.exposure.colour(v), self.odo.K, self.poses[k], frame_index=k,
-                          valid=v.valid[0, 0])
-            self.fused = k
         frame = view(i)
-        mv = self.map.render(self.odo.K, self.poses[i], *self.size, colour=False)
+        mv = self._render(i, view)
         ref = None
         if model_coverage(mv.valid, frame.valid[0, 0]) >= self.cfg.data.min_model_coverage:
             mv.with_colour()
             ref = self.odo.view_from_render(mv.color, mv.depth, mv.valid, background=frame)
         self.last = (i, ref)
         return ref
+
+    def depth_at(self, i: int, view) -> torch.Tensor:
+        """``(1, 1, H, W)`` depth in mm of the map rendered at frame ``i``'s pose after fusing frames
+        ``0..i``, 0 where it does not cover the frame (``View.model_depth`` as the pipeline sets it)."""
+        if self.last_depth is None or self.last_depth[0] != i:
+            mv = self._render(i, view)
+            self.last_depth = (i, torch.where(mv.valid, mv.depth, torch.zeros_like(mv.depth))[None, None])
+        return self.last_depth[1]
+
+    def _render(self, i: int, view):
+        while self.fused < i:
+            k = self.fused + 1
+            v = view(k)
+            self.map.fuse(v.depth[0, 0], self.exposure.colour(v), self.odo.K, self.poses[k], frame_index=k,
+                          valid=v.valid[0, 0])
+            self.fused = k
+        return self.map.render(self.odo.K, self.poses[i], *self.size, colour=False)
 
 
 def collate(samples: list[dict]) -> dict:

@@ -116,6 +116,7 @@ def test_network_inputs_layouts_and_depth_change():
     for version, (c2, c3) in IN_CHANNELS.items():
         inp = _inputs()
         inp.rigid_flow = torch.zeros_like(inp.flow)     # (layout 3's rigid prior flow)
+        inp.model_depth_ref = inp.depth_ref + 0.0       # (layout 4's map depth)
         x2, x3 = network_inputs(inp, 8, version)
         assert x2.shape == (1, c2, 8, 10) and x3.shape == (1, c3, 8, 10)
         assert torch.equal(x2, x3[:, :c2])
@@ -360,3 +361,74 @@ def test_rigid_prior_flow_and_the_third_input_layout(synth_dir):
     assert not track.failed and 0 < float(track.w2d.max()) <= 1
     gt = np.linalg.inv(ds.gt_poses[0]) @ ds.gt_poses[3]
     assert np.linalg.norm(gt[:3, 3]) > 0.5 and np.linalg.norm(track.relative[:3, 3] - gt[:3, 3]) < 0.2 * np.linalg.norm(gt[:3, 3])
+
+
+def test_fourth_input_layout_compares_the_reference_with_the_map(synth_dir, tmp_path):
+    """Layout 4 adds how far the reference's depth stands off the map's: the deviation is exact,
+    training computes it from a map fused at the ground-truth poses, and a frame2frame run of a
+    layout-4 network keeps a map and hands every reference its render."""
+    from slam.config import load_config
+    from slam.datasets import open_dataset
+    from slam.pipeline import Pipeline
+    from vo.weights import map_deviation
+
+    depth = torch.full((1, 1, 8, 8), 70.0)
+    model = depth.clone()
+    model[..., :4] = 70.0 * 0.99         # the map 1 % nearer on the left half
+    model[..., 0, 0] = 0.0               # and not covering one pixel
+    dev = map_deviation(depth, model)
+    assert dev.shape == (1, 2, 8, 8) and float(dev[0, 1].sum()) == 63 and float(dev[0, :, 0, 0].abs().sum()) == 0
+    expected = torch.asinh(torch.tensor(0.01 / DEPTH_CHANGE_REL))
+    assert torch.allclose(dev[0, 0, 1:, :4], expected.expand(7, 4), rtol=1e-4)
+    assert float(dev[0, 0, :, 4:].abs().max()) == 0
+
+    inp = _inputs()
+    try:
+        network_inputs(inp, 8, 4)
+        raise AssertionError("version 4 without the map's depth")
+    except ValueError as err:
+        assert "map's depth" in str(err)
+    inp.model_depth_ref = inp.depth_ref * 0.99
+    x2, x3 = network_inputs(inp, 8, 4)
+    assert (x2.shape[1], x3.shape[1]) == IN_CHANNELS[4] == (15, 22) and torch.equal(x3[:, :15], x2)
+    assert torch.allclose(x3[0, 13, 1:-1, 1:-1], expected.expand(6, 8), rtol=1e-3)   # warped by a zero flow
+    assert float(x3[0, 14].min()) > 0.999
+    _, x3_v2 = network_inputs(inp, 8, 2)
+    assert torch.equal(x3[:, :13], x3_v2[:, :13]) and torch.equal(x3[:, 15:], x3_v2[:, 13:])
+
+    # training: the pairs' map channels come from a map fused at the ground-truth poses
+    cache = tmp_path / "cache4"
+    cfg4 = {**TINY, "inputs": 4, "optim": {**TINY["optim"], "epochs": 1},
+            "data": {**TINY["data"], "scenarios": ["breathing"], "cache_dir": str(cache)}}
+    path = tmp_path / "v4.yaml"
+    path.write_text(yaml.safe_dump(cfg4))
+    assert main(["train", "--config", str(path), "--out", str(tmp_path / "v4")]) == 0
+    samples = [s for f in sorted((cache / "pairs").glob("*.pt")) for s in torch.load(f, weights_only=False)]
+    assert len(samples) >= 6
+    coverage = torch.stack([s["x3"][14].float().mean() for s in samples])
+    assert float(coverage.min()) > 0.8                  # the map covers the reference it was rendered at
+    assert max(float(s["x3"][13].float().abs().max()) for s in samples) > 0.1   # and stereo depth strays off it
+    ckpt = tmp_path / "v4" / "weights_2d3d.pt"
+    nets, meta = load_weight_networks(ckpt, "2d3d")
+    assert meta["inputs"] == 4 and nets.net2d.enc1[0].in_channels == 15
+
+    # frame2frame with a layout-4 network keeps a map (no export asked) and gives each reference its render
+    data = synth_dir("breathing", 10, (160, 128))
+    cfg = load_config(None, [f"weights.checkpoint={ckpt}", "tracking.mode=frame2frame", "tracking.export_map=false",
+                             "logging.progress=false"])
+    pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / "run4")
+    assert pipe.map is not None
+    seen = []
+    track = pipe.odometry.track
+
+    def spy(cur, ref, *args, **kwargs):
+        md = ref.model_depth
+        both = (md[0, 0] > 0) & (ref.depth[0, 0] > 0)
+        seen.append((float(both.float().mean()), float((md[0, 0] - ref.depth[0, 0])[both].abs().median())))
+        return track(cur, ref, *args, **kwargs)
+
+    pipe.odometry.track = spy
+    result = pipe.run(progress=False)
+    assert len(seen) == 9 and not any(r.failed for r in result.records)
+    assert min(c for c, _ in seen) > 0.8 and max(d for _, d in seen) < 0.5   # mm: the map agrees with the frame just fused
+    assert np.isfinite(result.metrics["ate_rmse_mm"]) and result.metrics["ate_rmse_mm"] < 2.0

@@ -25,7 +25,7 @@ from vo.lie import rotation_angle_deg
 from vo.residuals import PoseProblem, residuals
 from vo.solver import solve_pose
 from vo.weights import (WeightInputs, WeightNetworks, constant_weights, load_weight_networks, rigid_prior_flow,
-                        model_reference_checkpoint)
+                        model_reference_checkpoint, uses_map_depth, uses_rigid_flow)
 
 
 @dataclass
@@ -59,6 +59,9 @@ class View:
         flow_input: the image and grey image with the masked pixels inpainted, kept once
             computed (:meth:`StereoOdometry._flow_input`: a frame is flowed against a model
             view in its tracking pass, its refinement passes and, chained, as the last frame).
+        model_depth: ``(1, 1, H, W)`` depth in mm of the map rendered at this view's pose after it
+            was fused (0 where the map does not cover it), or None: the input of layout-4 weight
+            networks when the view is a reference (:meth:`StereoOdometry.needs_map_depth`).
         flow_ahead: the temporal flow of this view against an earlier real view, computed
             before it was needed (:meth:`StereoOdometry.flow_ahead`): a weak reference to that
             view, the flow and the forward-backward mask; taken once by the tracking that uses it.
@@ -73,6 +76,7 @@ class View:
     masked: np.ndarray | None = None
     rendered: bool = False
     flow_input: tuple[torch.Tensor, np.ndarray] | None = field(default=None, repr=False)
+    model_depth: torch.Tensor | None = field(default=None, repr=False)
     flow_ahead: tuple[weakref.ref, torch.Tensor, torch.Tensor | None] | None = field(default=None, repr=False)
 
 
@@ -259,12 +263,20 @@ class StereoOdometry:
         networks = self.model_weight_networks if model_reference and self.model_weight_networks is not None \
             else self.weight_networks
         dmax = self.config.depth.max_depth_mm
-        rigid = self.rigid_flow(cur, flow, problem) if networks.inputs >= 3 else None
+        rigid = self.rigid_flow(cur, flow, problem) if uses_rigid_flow(networks.inputs) else None
+        model_depth = None
+        if uses_map_depth(networks.inputs):   # a reference without a map view (a first frame, a model view): no deviation
+            model_depth = torch.zeros_like(ref.depth) if ref.model_depth is None else ref.model_depth / dmax
         inp = WeightInputs(image_cur=cur.image, depth_cur=cur.depth / dmax, flow=flow, parallax_cur=cur.parallax,
                            image_ref=ref.image, depth_ref=ref.depth / dmax, parallax_ref=ref.parallax, valid=valid,
-                           rigid_flow=rigid)
+                           rigid_flow=rigid, model_depth_ref=model_depth)
         with torch.inference_mode():
             return networks(inp)
+
+    def needs_map_depth(self) -> bool:
+        """The frame-reference weight networks take the map's depth at the reference's pose
+        (layout 4): whoever keeps a map sets ``View.model_depth`` on each reference."""
+        return self.weight_networks is not None and uses_map_depth(self.weight_networks.inputs)
 
     def rigid_flow(self, cur: View, flow: torch.Tensor, problem: tuple) -> torch.Tensor:
         """``(1, 2, H, W)``: the flow of the rigid motion solved with the constant weights

@@ -18,6 +18,13 @@ against the rigid motion of a first solve with the constant weights, ``asinh((F_
 px)`` (2; ``WeightInputs.rigid_flow``): where the camera moves, its own flow hides the tissue's
 sub-pixel non-rigid motion in F_t; the residual shows it as it shows on a static camera. 15 and 22
 channels.
+Layout version 4 (an experiment, stop 25) adds instead, after the sub-pixel flow, how far the
+reference's depth stands off the map's (the surfel map fused from the frames up to the reference,
+rendered at its pose): ``asinh((D_ref - D_map) / D_ref / 0.003)`` and where the map covers the
+reference (2, on the reference grid, warped like the other reference maps; ``WeightInputs.
+model_depth_ref``). A map fused over many frames holds the tissue's mean shape, so the deviation is
+the whole breathing or pushing displacement rather than one frame's share of it, and it stays
+visible when the camera moves. 15 and 22 channels.
 Flows are scaled by ``20 / W`` (a flow of 5 % of the width is 1); the vertical parallax by ``W0 / (2 W)``
 with ``W0 = 640`` (2 px at the paper's resolution is 1).
 """
@@ -34,11 +41,21 @@ import torch.nn.functional as F
 from vo.geometry import pixel_grid, project, sample_by_flow
 
 INPUT_VERSION = 2
-IN_CHANNELS = {1: (11, 17), 2: (13, 20), 3: (15, 22)}  # input layout version -> (w2D, w3D) channels
+IN_CHANNELS = {1: (11, 17), 2: (13, 20), 3: (15, 22), 4: (15, 22)}  # input layout version -> (w2D, w3D) channels
 IN_CHANNELS_2D, IN_CHANNELS_3D = IN_CHANNELS[INPUT_VERSION]
 FLOW_FINE_PX = 0.5  # sub-pixel flow scale of the version-2 inputs
 DEPTH_CHANGE_REL = 0.003  # relative depth change scale (0.2 mm at 70 mm, the stereo noise at 1/8)
 CHECKPOINT_DIR = Path(__file__).parent / "checkpoints"
+
+
+def uses_rigid_flow(version: int) -> bool:
+    """Layout ``version`` takes the rigid prior flow of a constant-weight pre-solve."""
+    return version == 3
+
+
+def uses_map_depth(version: int) -> bool:
+    """Layout ``version`` takes the map's depth rendered at the reference's pose."""
+    return version == 4
 
 
 @dataclass
@@ -53,6 +70,8 @@ class WeightInputs:
         valid: ``(B, 1, H, W)`` bool pixels that enter the objective.
         rigid_flow: ``(B, 2, H, W)`` the flow a rigid motion fitted with constant weights predicts
             (pixels; layout version 3 only, see :func:`rigid_prior_flow`).
+        model_depth_ref: ``(B, 1, H, W)`` the map's normalised depth rendered at the reference's
+            pose, 0 where the map does not cover it (layout version 4 only; all zero: no map yet).
     """
 
     image_cur: torch.Tensor
@@ -64,6 +83,7 @@ class WeightInputs:
     parallax_ref: torch.Tensor
     valid: torch.Tensor
     rigid_flow: torch.Tensor | None = None
+    model_depth_ref: torch.Tensor | None = None
 
 
 def _scale_flow(flow: torch.Tensor, width: int) -> torch.Tensor:
@@ -113,11 +133,26 @@ def network_inputs(inp: WeightInputs, downscale: int, version: int = INPUT_VERSI
     if version == 2:
         x3 = torch.cat([coords, cur, flow_fine, ref_warped, change], 1)
         return x3[:, :IN_CHANNELS[2][0]], x3
+    if version == 4:
+        if inp.model_depth_ref is None:
+            raise ValueError("weight-network inputs of version 4 need the map's depth (WeightInputs.model_depth_ref)")
+        off_map = sample_by_flow(_downsample(map_deviation(inp.depth_ref, inp.model_depth_ref), (h, w)), flow_low)
+        x3 = torch.cat([coords, cur, flow_fine, off_map, ref_warped, change], 1)
+        return x3[:, :IN_CHANNELS[4][0]], x3
     if inp.rigid_flow is None:
         raise ValueError("weight-network inputs of version 3 need the rigid prior flow (WeightInputs.rigid_flow)")
     nonrigid = torch.asinh(_downsample(inp.flow - inp.rigid_flow, (h, w)) / FLOW_FINE_PX)
     x3 = torch.cat([coords, cur, flow_fine, nonrigid, ref_warped, change], 1)
     return x3[:, :IN_CHANNELS[3][0]], x3
+
+
+def map_deviation(depth_ref: torch.Tensor, model_depth_ref: torch.Tensor) -> torch.Tensor:
+    """``(B, 2, H, W)``: how far the reference's depth stands off the map's, ``asinh((D_ref -
+    D_map) / D_ref / 0.003)`` (0 where either is missing), and where the map covers the reference
+    (1 / 0). Inputs ``(B, 1, H, W)`` in the same unit, 0 where invalid."""
+    covered = (depth_ref > 0) & (model_depth_ref > 0)
+    rel = torch.where(covered, (depth_ref - model_depth_ref) / depth_ref.clamp(min=1e-6), torch.zeros_like(depth_ref))
+    return torch.cat([torch.asinh(rel / DEPTH_CHANGE_REL), covered.to(depth_ref.dtype)], 1)
 
 
 def rigid_prior_flow(points_cur: torch.Tensor, flow: torch.Tensor, T: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
