@@ -36,7 +36,7 @@ from slam.rectification import original_to_rect_pose
 from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
 from vo.ddn import declarative_pose
 from vo.geometry import backproject
-from vo.lie import se3_log
+from vo.lie import se3_exp, se3_log
 from vo.odometry import StereoOdometry, View, VOConfig
 from vo.residuals import PoseProblem
 from vo.weights import (IN_CHANNELS, INPUT_VERSION, WeightInputs, WeightNetworks, load_weight_networks,
@@ -71,6 +71,14 @@ class TrainDataConfig:
         min_model_coverage: ``model``: a pair whose render covers less of the reference frame's
             valid pixels is left out (tracking falls back to the previous frame there).
         fuse_exposure: ``model``: the colour fused into the map (``tracking.fuse_exposure``).
+        chain_length: 1: independent pairs (eq. 7 per pair). ``L > 1``: the pairs come in chains of
+            ``L`` consecutive frame pairs (one frame apart, as frame2frame tracks) and the loss of
+            eq. 7 is taken on the chain's composed pose: the per-pair loss weighs each pair's
+            noise, while what makes a trajectory drift is the bias that consecutive pairs share
+            (breathing, a push), which grows ``L`` times along a chain and the noise only
+            ``sqrt(L)`` times. ``pairs_per_sequence // L`` chains per sequence, not overlapping,
+            balanced between moving and static camera by the chain's motion; ``optim.batch_size``
+            still counts pairs (``batch_size // L`` chains, at least one, per step).
     """
 
     scenarios: list = field(default_factory=lambda: ["rigid", "breathing", "scanning", "deforming", "loop"])
@@ -89,6 +97,7 @@ class TrainDataConfig:
     reference: str = "frame"
     min_model_coverage: float = 0.95
     fuse_exposure: str = "normalised"
+    chain_length: int = 1
 
 
 @dataclass
@@ -188,6 +197,12 @@ def load_train_config(path: str | Path, overrides: list[str] | None = None) -> T
     if (len(cfg.optim.balance_weights) != 2 or not all(isinstance(w, (int, float)) for w in cfg.optim.balance_weights)
             or min(cfg.optim.balance_weights) < 0 or max(cfg.optim.balance_weights) <= 0):
         raise ConfigError(f"{path}: 'optim.balance_weights' must be two non-negative numbers [w2D, w3D], not both 0")
+    if not isinstance(cfg.data.chain_length, int) or cfg.data.chain_length < 1:
+        raise ConfigError(f"{path}: 'data.chain_length' must be a whole number >= 1")
+    if cfg.data.chain_length > 1 and cfg.optim.balance != "none":
+        raise ConfigError(f"{path}: 'data.chain_length' > 1 needs 'optim.balance: none'")
+    if cfg.data.chain_length > 1 and cfg.data.reference != "frame":
+        raise ConfigError(f"{path}: 'data.chain_length' > 1 needs 'data.reference: frame' (frame2frame chains)")
     if cfg.inputs not in IN_CHANNELS:
         raise ConfigError(f"{path}: 'inputs' must be one of {', '.join(map(str, IN_CHANNELS))} (weight-network input versions)")
     if cfg.optim.init:
@@ -244,11 +259,78 @@ def sample_pairs(gt: np.ndarray, R1: np.ndarray, cfg: TrainDataConfig, rng: rand
     return sorted(picks)
 
 
+def sample_chains(gt: np.ndarray, R1: np.ndarray, cfg: TrainDataConfig,
+                  rng: random.Random) -> list[tuple[int, int, bool, int]]:
+    """Draw ``pairs_per_sequence // chain_length`` chains of ``chain_length`` consecutive pairs
+    ``(i, i + 1)``, not overlapping, balanced between moving and static camera (by the motion from
+    the chain's first frame to its last); returns ``(reference i, current i + 1, moving, chain
+    start)`` sorted by ``i``."""
+    L = cfg.chain_length
+    moving, static = [], []
+    for start in range(len(gt) - L):
+        T = relative_rect_transform(gt, R1, start, start + L)
+        angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)))
+        is_moving = np.linalg.norm(T[:3, 3]) > cfg.moving_threshold_mm * L or angle > cfg.moving_threshold_deg * L
+        (moving if is_moving else static).append((start, is_moving))
+    n = max(1, cfg.pairs_per_sequence // L)
+    taken: set[int] = set()
+    picks: list[tuple[int, bool]] = []
+
+    def draw(pool: list, count: int) -> None:
+        for start, is_moving in rng.sample(pool, len(pool)):
+            if count <= 0:
+                return
+            if not taken.intersection(range(start, start + L)):
+                taken.update(range(start, start + L))
+                picks.append((start, is_moving))
+                count -= 1
+
+    if moving and static:
+        draw(moving, n // 2)
+        draw(static, n - len(picks))
+    draw(moving + static, n - len(picks))   # one class short: the other fills in
+    return sorted((start + k, start + k + 1, is_moving, start) for start, is_moving in picks for k in range(L))
+
+
+def chains_of(samples: list[dict], length: int) -> list[list[int]]:
+    """Indices of ``samples`` grouped into complete chains of ``length`` links (in link order);
+    a chain that lost a link (too few valid pixels) is left out. ``length`` 1: every sample alone."""
+    if length == 1:
+        return [[k] for k in range(len(samples))]
+    groups: dict[str, list[int]] = {}
+    for k, s in enumerate(samples):
+        groups.setdefault(s["chain"], []).append(k)
+    return [sorted(g, key=lambda k: samples[k]["link"]) for g in groups.values() if len(g) == length]
+
+
+def chain_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor, length: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 7 on chains: ``|log(T_1 ... T_L) - log(T_1^gt ... T_L^gt)|_1`` per chain.
+
+    Args:
+        p, p_gt: ``(C * length, 6)`` solved and true poses of the links (current -> reference,
+            translation normalised), chain by chain in link order.
+        ok: ``(C * length,)`` links whose forward pass reached a minimum.
+    Returns:
+        per-chain loss ``(C,)`` and ``(C,)`` bool chains whose every link is ok.
+    """
+    C = p.shape[0] // length
+    ok_chain = ok.view(C, length).all(1)
+    p = torch.where(ok[:, None], p, p_gt.to(p.dtype))        # a failed link: no value, no gradient
+    T = se3_exp(p.double()).view(C, length, 4, 4)
+    T_gt = se3_exp(p_gt.double()).view(C, length, 4, 4)
+    est, gt = T[:, 0], T_gt[:, 0]
+    for k in range(1, length):
+        est, gt = est @ T[:, k], gt @ T_gt[:, k]
+    return (se3_log(est) - se3_log(gt)).abs().sum(1), ok_chain
+
+
 def _cache_key(cfg: TrainConfig, path: Path) -> str:
     """What the samples of one sequence depend on (not on which other sequences are trained)."""
     data = asdict(cfg.data)
     for name in ("breathing_follows_tissue", "scenarios", "seeds", "sequences", "cache_dir"):
         data.pop(name)  # the sequence itself is named by its path (the coupling is in the folder name)
+    if cfg.data.chain_length == 1:
+        data.pop("chain_length")    # (keys written before chains existed stay valid)
     if cfg.data.reference == "frame":   # (keys written before model references existed stay valid)
         for name in ("reference", "min_model_coverage", "fuse_exposure"):
             data.pop(name)
@@ -289,7 +371,10 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
     model_refs = cfg.data.reference == "model"
     samples = []
     g = torch.Generator().manual_seed(rng.randrange(2**31))
-    for i, j, moving in sample_pairs(dataset.gt_poses, dataset.R1, cfg.data, rng):
+    chained = cfg.data.chain_length > 1
+    pairs = (sample_chains(dataset.gt_poses, dataset.R1, cfg.data, rng) if chained else
+             [(i, j, moving, None) for i, j, moving in sample_pairs(dataset.gt_poses, dataset.R1, cfg.data, rng)])
+    for i, j, moving, chain in pairs:
         cur = view(j)
         ref = model.view_at(i, view) if model_refs else view(i)
         if ref is None:
@@ -332,7 +417,7 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
             "size": (H, W),
             "moving": moving,
             "source": f"{path.name}:{i}->{j}",
-        })
+        } | ({"chain": f"{path.name}:{chain}", "link": i - chain} if chained else {}))
         for k in [k for k in views if k < i]:
             del views[k]  # pairs are sorted by i: earlier views are not needed again
     cache.parent.mkdir(parents=True, exist_ok=True)
@@ -433,10 +518,12 @@ def training_data(cfg: TrainConfig, progress: bool = True) -> tuple[list[Path], 
     if cfg.optim.split == "sequence":
         log.warning("validation: no scenario has two sequences to hold one out; validating on a share of "
                     "the pairs of the training sequences")
-    order = list(range(len(samples)))
+    units = chains_of(samples, cfg.data.chain_length)    # whole chains (single pairs when chain_length is 1)
+    order = list(range(len(units)))
     rng.shuffle(order)
-    n_val = max(1, int(round(cfg.optim.val_fraction * len(samples))))
-    return sequences, [samples[k] for k in order[n_val:]], [samples[k] for k in order[:n_val]]
+    n_val = max(1, int(round(cfg.optim.val_fraction * len(units))))
+    return (sequences, [samples[m] for k in order[n_val:] for m in units[k]],
+            [samples[m] for k in order[:n_val] for m in units[k]])
 
 
 def sequence_name(sample: dict) -> str:
@@ -500,13 +587,16 @@ def l1_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor, scale: t
 
 def evaluate_loss(nets, samples: list[dict], cfg: TrainConfig, n2d: int | None = None,
                   constant: tuple[float, float] | None = None) -> tuple[float, int]:
-    """Mean L1 pose loss over ``samples`` and the number of failed forward passes, with the
-    networks' weights or, when ``constant = (w2d, w3d)`` is given, constant weights."""
+    """Mean L1 pose loss over ``samples`` (over their chains, ``data.chain_length`` > 1) and the
+    number of failed forward passes (chains), with the networks' weights or, when ``constant =
+    (w2d, w3d)`` is given, constant weights."""
     total, count, failed = 0.0, 0, 0
-    bs = cfg.optim.batch_size
+    L = cfg.data.chain_length
+    chains = chains_of(samples, L)
+    bs = max(1, cfg.optim.batch_size // L)      # chains per batch (pairs when L = 1)
     with torch.no_grad():
-        for k in range(0, len(samples), bs):
-            batch = collate(samples[k:k + bs])
+        for k in range(0, len(chains), bs):
+            batch = collate([samples[m] for chain in chains[k:k + bs] for m in chain])
             if constant is not None:
                 H, W = batch["size"]
                 s2, s3 = PoseProblem.scales(H, W)
@@ -516,7 +606,10 @@ def evaluate_loss(nets, samples: list[dict], cfg: TrainConfig, n2d: int | None =
                 p, ok = declarative_pose(w2, w3, prob, cfg.solver, cfg.optim.grad_tol)
             else:
                 p, ok = pose_from_batch(nets, batch, cfg, n2d)
-            per = (p - batch["p_gt"]).abs().sum(1)
+            if L == 1:
+                per = (p - batch["p_gt"]).abs().sum(1)
+            else:
+                per, ok = chain_pose_loss(p, batch["p_gt"], ok, L)
             total += float((per * ok).sum())
             count += int(ok.sum())
             failed += int((~ok).sum())
@@ -607,18 +700,26 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
     bar = tqdm(range(1, cfg.optim.epochs + 1), desc=f"train {cfg.residuals}", disable=not progress or rank != 0)
     bar.set_postfix(val=f"{best_val:.5f}", const=f"{baseline:.5f}")
     t0 = time.time()
+    L = cfg.data.chain_length
+    chains = chains_of(train_set, L)
+    per_step = max(1, cfg.optim.batch_size // L)      # chains per step (pairs when L = 1)
     for epoch in bar:
         nets.train()
-        perm = list(range(len(train_set)))
+        perm = list(range(len(chains)))
         random.Random(cfg.optim.seed + epoch).shuffle(perm)
         perm = perm[rank::world]
         losses, failed = [], 0
-        for k in range(0, len(perm), cfg.optim.batch_size):
-            idx = perm[k:k + cfg.optim.batch_size]
+        for k in range(0, len(perm), per_step):
+            idx = [m for c in perm[k:k + per_step] for m in chains[c]]
             batch = collate([train_set[m] for m in idx])
             p, ok = pose_from_batch(model, batch, cfg)
-            failed += int((~ok).sum())
-            loss = l1_pose_loss(p, batch["p_gt"], ok, objective.factors[idx] if objective.balanced else None)
+            if L == 1:
+                failed += int((~ok).sum())
+                loss = l1_pose_loss(p, batch["p_gt"], ok, objective.factors[idx] if objective.balanced else None)
+            else:
+                per, ok_chain = chain_pose_loss(p, batch["p_gt"], ok, L)
+                failed += int((~ok_chain).sum())
+                loss = (per * ok_chain).sum() / ok_chain.sum().clamp(min=1)
             opt.zero_grad()
             loss.backward()
             opt.step()

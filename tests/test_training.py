@@ -432,3 +432,62 @@ def test_fourth_input_layout_compares_the_reference_with_the_map(synth_dir, tmp_
     assert len(seen) == 9 and not any(r.failed for r in result.records)
     assert min(c for c, _ in seen) > 0.8 and max(d for _, d in seen) < 0.5   # mm: the map agrees with the frame just fused
     assert np.isfinite(result.metrics["ate_rmse_mm"]) and result.metrics["ate_rmse_mm"] < 2.0
+
+
+def test_chain_loss_on_consecutive_pairs(tmp_path):
+    """``data.chain_length``: chains of consecutive pairs, not overlapping, balanced; the loss of
+    eq. 7 on their composed pose (zero at the truth, the per-pair loss for one link, gradients to
+    every link); a tiny training runs on chains and its validation loss is the chain loss."""
+    import random
+
+    from slam.training import (TrainDataConfig, chain_pose_loss, chains_of, evaluate_loss, load_train_config,
+                               sample_chains)
+    from vo.lie import se3_exp, se3_log
+
+    # a camera still for 30 frames, then moving 0.5 mm a frame
+    gt = np.stack([np.eye(4) for _ in range(60)])
+    gt[30:, 0, 3] = 0.5 * np.arange(1, 31)
+    cfg = TrainDataConfig(chain_length=4, pairs_per_sequence=24)
+    pairs = sample_chains(gt, np.eye(3), cfg, random.Random(0))
+    assert len(pairs) == 24 and all(j == i + 1 for i, j, _, _ in pairs)
+    starts = sorted({c for *_, c in pairs})
+    assert len(starts) == 6 and all(b - a >= 4 for a, b in zip(starts, starts[1:]))
+    assert sum(m for _, _, m, _ in pairs) == 12          # three moving chains of four links
+    assert sorted(i for i, *_ in pairs) == sorted(c + k for c in starts for k in range(4))
+
+    g = torch.Generator().manual_seed(1)
+    p_gt = 0.01 * torch.randn(6, 6, generator=g, dtype=torch.float64)
+    ok = torch.ones(6, dtype=torch.bool)
+    loss, ok_chain = chain_pose_loss(p_gt.clone(), p_gt, ok, 3)
+    assert loss.shape == (2,) and float(loss.abs().max()) < 1e-12 and bool(ok_chain.all())
+    p = (p_gt + 0.001 * torch.randn(6, 6, generator=g, dtype=torch.float64)).requires_grad_(True)
+    single, _ = chain_pose_loss(p, p_gt, ok, 1)
+    assert torch.allclose(single, (p - p_gt).abs().sum(1))
+    loss, _ = chain_pose_loss(p, p_gt, ok, 3)
+    T = se3_exp(p.detach()).view(2, 3, 4, 4)
+    T_gt = se3_exp(p_gt).view(2, 3, 4, 4)
+    expected = (se3_log(T[:, 0] @ T[:, 1] @ T[:, 2]) - se3_log(T_gt[:, 0] @ T_gt[:, 1] @ T_gt[:, 2])).abs().sum(1)
+    assert torch.allclose(loss.detach(), expected, atol=1e-10)
+    loss.sum().backward()
+    assert bool((p.grad.abs().sum(1) > 0).all())
+    ok[4] = False                                                  # a failed link fails its chain only
+    _, ok_chain = chain_pose_loss(p.detach(), p_gt, ok, 3)
+    assert ok_chain.tolist() == [True, False]
+
+    samples = [{"chain": f"s:{c}", "link": k} for c in (0, 10) for k in (2, 0, 1)] + [{"chain": "s:20", "link": 0}]
+    assert chains_of(samples, 3) == [[1, 2, 0], [4, 5, 3]]          # link order; the broken chain left out
+
+    tiny = {**TINY, "data": {**TINY["data"], "chain_length": 3, "pairs_per_sequence": 9, "cache_dir": str(tmp_path / "cache")},
+            "optim": {**TINY["optim"], "epochs": 1, "batch_size": 6}}
+    path = tmp_path / "chain.yaml"
+    path.write_text(yaml.safe_dump(tiny))
+    assert main(["train", "--config", str(path), "--out", str(tmp_path / "chain")]) == 0
+    ckpt = torch.load(tmp_path / "chain" / "weights_2d3d.pt", weights_only=False)["meta"]
+    assert ckpt["train_config"]["data"]["chain_length"] == 3 and ckpt["val_loss"] > 0
+    from slam.training import training_data
+    tcfg = load_train_config(path)
+    _, train_set, val = training_data(tcfg, progress=False)
+    assert all("chain" in s for s in train_set) and len(chains_of(train_set, 3)) * 3 == len(train_set)
+    assert len(chains_of(val, 3)) * 3 == len(val) > 0               # validation holds whole chains
+    nets, _ = load_weight_networks(tmp_path / "chain" / "weights_2d3d.pt", "2d3d")
+    assert abs(evaluate_loss(nets, val, tcfg)[0] - ckpt["val_loss"]) < 1e-6
