@@ -76,9 +76,12 @@ class TrainDataConfig:
             eq. 7 is taken on the chain's composed pose: the per-pair loss weighs each pair's
             noise, while what makes a trajectory drift is the bias that consecutive pairs share
             (breathing, a push), which grows ``L`` times along a chain and the noise only
-            ``sqrt(L)`` times. ``pairs_per_sequence // L`` chains per sequence, not overlapping,
-            balanced between moving and static camera by the chain's motion; ``optim.batch_size``
-            still counts pairs (``batch_size // L`` chains, at least one, per step).
+            ``sqrt(L)`` times. Every consecutive pair of a sequence is cached; each epoch draws
+            ``pairs_per_sequence // L`` chains per training sequence afresh (random starts, so
+            the chains differ from epoch to epoch: a fixed set of a few hundred chains is learnt
+            by heart within a few epochs); validation takes each sequence's chains end to end
+            from its first frame (fixed). ``optim.batch_size`` still counts pairs (``batch_size //
+            L`` chains, at least one, per step).
     """
 
     scenarios: list = field(default_factory=lambda: ["rigid", "breathing", "scanning", "deforming", "loop"])
@@ -259,48 +262,47 @@ def sample_pairs(gt: np.ndarray, R1: np.ndarray, cfg: TrainDataConfig, rng: rand
     return sorted(picks)
 
 
-def sample_chains(gt: np.ndarray, R1: np.ndarray, cfg: TrainDataConfig,
-                  rng: random.Random) -> list[tuple[int, int, bool, int]]:
-    """Draw ``pairs_per_sequence // chain_length`` chains of ``chain_length`` consecutive pairs
-    ``(i, i + 1)``, not overlapping, balanced between moving and static camera (by the motion from
-    the chain's first frame to its last); returns ``(reference i, current i + 1, moving, chain
-    start)`` sorted by ``i``."""
-    L = cfg.chain_length
-    moving, static = [], []
-    for start in range(len(gt) - L):
-        T = relative_rect_transform(gt, R1, start, start + L)
-        angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)))
-        is_moving = np.linalg.norm(T[:3, 3]) > cfg.moving_threshold_mm * L or angle > cfg.moving_threshold_deg * L
-        (moving if is_moving else static).append((start, is_moving))
-    n = max(1, cfg.pairs_per_sequence // L)
-    taken: set[int] = set()
-    picks: list[tuple[int, bool]] = []
-
-    def draw(pool: list, count: int) -> None:
-        for start, is_moving in rng.sample(pool, len(pool)):
-            if count <= 0:
-                return
-            if not taken.intersection(range(start, start + L)):
-                taken.update(range(start, start + L))
-                picks.append((start, is_moving))
-                count -= 1
-
-    if moving and static:
-        draw(moving, n // 2)
-        draw(static, n - len(picks))
-    draw(moving + static, n - len(picks))   # one class short: the other fills in
-    return sorted((start + k, start + k + 1, is_moving, start) for start, is_moving in picks for k in range(L))
+def chain_runs(samples: list[dict]) -> list[list[int]]:
+    """Indices of ``samples`` that are consecutive frame pairs (``chain_length`` > 1 samples carry
+    their sequence ``seq`` and reference frame ``link``), grouped into runs of unbroken
+    succession (a pair left out for too few valid pixels, or held out, breaks a run)."""
+    by_seq: dict[str, list[int]] = {}
+    for k, smp in enumerate(samples):
+        by_seq.setdefault(smp["seq"], []).append(k)
+    runs = []
+    for idx in by_seq.values():
+        idx.sort(key=lambda k: samples[k]["link"])
+        run = [idx[0]]
+        for k in idx[1:]:
+            if samples[k]["link"] == samples[run[-1]]["link"] + 1:
+                run.append(k)
+            else:
+                runs.append(run)
+                run = [k]
+        runs.append(run)
+    return runs
 
 
 def chains_of(samples: list[dict], length: int) -> list[list[int]]:
-    """Indices of ``samples`` grouped into complete chains of ``length`` links (in link order);
-    a chain that lost a link (too few valid pixels) is left out. ``length`` 1: every sample alone."""
+    """The fixed chains of ``samples`` (validation): each run of consecutive pairs cut into
+    chains of ``length`` links end to end from its start (a shorter rest is left out).
+    ``length`` 1: every sample alone, in order."""
     if length == 1:
         return [[k] for k in range(len(samples))]
-    groups: dict[str, list[int]] = {}
-    for k, s in enumerate(samples):
-        groups.setdefault(s["chain"], []).append(k)
-    return [sorted(g, key=lambda k: samples[k]["link"]) for g in groups.values() if len(g) == length]
+    return [run[a:a + length] for run in chain_runs(samples) for a in range(0, len(run) - length + 1, length)]
+
+
+def draw_chains(samples: list[dict], length: int, per_sequence: int, rng: random.Random) -> list[list[int]]:
+    """``per_sequence`` chains of ``length`` consecutive pairs per sequence with random starts
+    (chains may overlap), in the order drawn (training: a fresh draw every epoch)."""
+    by_seq: dict[str, list[list[int]]] = {}
+    for run in chain_runs(samples):
+        by_seq.setdefault(samples[run[0]]["seq"], []).extend(run[a:a + length] for a in range(len(run) - length + 1))
+    chains = []
+    for seq in sorted(by_seq):
+        candidates = by_seq[seq]
+        chains.extend(rng.sample(candidates, min(per_sequence, len(candidates))))
+    return chains
 
 
 def chain_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor, length: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -371,10 +373,10 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
     model_refs = cfg.data.reference == "model"
     samples = []
     g = torch.Generator().manual_seed(rng.randrange(2**31))
-    chained = cfg.data.chain_length > 1
-    pairs = (sample_chains(dataset.gt_poses, dataset.R1, cfg.data, rng) if chained else
-             [(i, j, moving, None) for i, j, moving in sample_pairs(dataset.gt_poses, dataset.R1, cfg.data, rng)])
-    for i, j, moving, chain in pairs:
+    chained = cfg.data.chain_length > 1     # every consecutive pair: chains are drawn from them per epoch
+    pairs = ([(i, i + 1, None) for i in range(len(dataset.gt_poses) - 1)] if chained else
+             sample_pairs(dataset.gt_poses, dataset.R1, cfg.data, rng))
+    for i, j, moving in pairs:
         cur = view(j)
         ref = model.view_at(i, view) if model_refs else view(i)
         if ref is None:
@@ -417,7 +419,7 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
             "size": (H, W),
             "moving": moving,
             "source": f"{path.name}:{i}->{j}",
-        } | ({"chain": f"{path.name}:{chain}", "link": i - chain} if chained else {}))
+        } | ({"seq": path.name, "link": i} if chained else {}))
         for k in [k for k in views if k < i]:
             del views[k]  # pairs are sorted by i: earlier views are not needed again
     cache.parent.mkdir(parents=True, exist_ok=True)
@@ -705,6 +707,9 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
     per_step = max(1, cfg.optim.batch_size // L)      # chains per step (pairs when L = 1)
     for epoch in bar:
         nets.train()
+        if L > 1:   # fresh chains every epoch
+            chains = draw_chains(train_set, L, max(1, cfg.data.pairs_per_sequence // L),
+                                 random.Random(f"{cfg.optim.seed}:chains:{epoch}"))
         perm = list(range(len(chains)))
         random.Random(cfg.optim.seed + epoch).shuffle(perm)
         perm = perm[rank::world]
