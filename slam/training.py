@@ -341,6 +341,8 @@ def _cache_key(cfg: TrainConfig, path: Path) -> str:
                 "inputs": cfg.inputs}
     if cfg.data.reference == "model" or uses_map_depth(cfg.inputs):
         relevant["map"] = asdict(cfg.map)
+    if cfg.data.chain_length > 1:
+        relevant["pairs"] = "consecutive"     # every consecutive pair (chains are drawn in training)
     return hashlib.sha1(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:12]
 
 
