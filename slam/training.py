@@ -331,8 +331,7 @@ def _cache_key(cfg: TrainConfig, path: Path) -> str:
     data = asdict(cfg.data)
     for name in ("breathing_follows_tissue", "scenarios", "seeds", "sequences", "cache_dir"):
         data.pop(name)  # the sequence itself is named by its path (the coupling is in the folder name)
-    if cfg.data.chain_length == 1:
-        data.pop("chain_length")    # (keys written before chains existed stay valid)
+    data.pop("chain_length")    # (keys written before chains existed stay valid; "pairs" below marks chain caches)
     if cfg.data.reference == "frame":   # (keys written before model references existed stay valid)
         for name in ("reference", "min_model_coverage", "fuse_exposure"):
             data.pop(name)
@@ -342,7 +341,7 @@ def _cache_key(cfg: TrainConfig, path: Path) -> str:
     if cfg.data.reference == "model" or uses_map_depth(cfg.inputs):
         relevant["map"] = asdict(cfg.map)
     if cfg.data.chain_length > 1:
-        relevant["pairs"] = "consecutive"     # every consecutive pair (chains are drawn in training)
+        relevant["pairs"] = "consecutive"     # every consecutive pair, whatever the chain length (drawn in training)
     return hashlib.sha1(json.dumps(relevant, sort_keys=True).encode()).hexdigest()[:12]
 
 
