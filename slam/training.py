@@ -79,7 +79,8 @@ class TrainDataConfig:
             ``sqrt(L)`` times. Every consecutive pair of a sequence is cached; each epoch draws
             ``pairs_per_sequence // L`` chains per training sequence afresh (random starts, so
             the chains differ from epoch to epoch: a fixed set of a few hundred chains is learnt
-            by heart within a few epochs); validation takes each sequence's chains end to end
+            by heart within a few epochs; not balanced by camera motion: the scenarios are, moving
+            in rigid, scanning and loop, still in breathing and deforming); validation takes each sequence's chains end to end
             from its first frame (fixed). ``optim.batch_size`` still counts pairs (``batch_size //
             L`` chains, at least one, per step).
     """
