@@ -24,7 +24,8 @@ rendered at its pose): ``asinh((D_ref - D_map) / D_ref / 0.003)`` and where the 
 reference (2, on the reference grid, warped like the other reference maps; ``WeightInputs.
 model_depth_ref``). A map fused over many frames holds the tissue's mean shape, so the deviation is
 the whole breathing or pushing displacement rather than one frame's share of it, and it stays
-visible when the camera moves. 15 and 22 channels.
+visible when the camera moves. 15 and 22 channels. (Trained with the shipped recipe it tracked worse
+than version 2: README, "Input layout 4".)
 Flows are scaled by ``20 / W`` (a flow of 5 % of the width is 1); the vertical parallax by ``W0 / (2 W)``
 with ``W0 = 640`` (2 px at the paper's resolution is 1).
 """
