@@ -307,7 +307,8 @@ def draw_chains(samples: list[dict], length: int, per_sequence: int, rng: random
 
 
 def chain_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor, length: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Eq. 7 on chains: ``|log(T_1 ... T_L) - log(T_1^gt ... T_L^gt)|_1`` per chain.
+    """Eq. 7 on chains: ``|log(T_1 ... T_L) - log(T_1^gt ... T_L^gt)|_1`` per chain; for
+    ``length`` 1 eq. 7 per pair, ``|p* - p_gt|_1`` (the pair recipe, computed as such).
 
     Args:
         p, p_gt: ``(C * length, 6)`` solved and true poses of the links (current -> reference,
@@ -316,6 +317,8 @@ def chain_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor, lengt
     Returns:
         per-chain loss ``(C,)`` and ``(C,)`` bool chains whose every link is ok.
     """
+    if length == 1:
+        return (p - p_gt).abs().sum(1), ok
     C = p.shape[0] // length
     ok_chain = ok.view(C, length).all(1)
     p = torch.where(ok[:, None], p, p_gt.to(p.dtype))        # a failed link: no value, no gradient
@@ -580,15 +583,6 @@ def pose_from_batch(nets: WeightNetworks, batch: dict, cfg: TrainConfig, n2d: in
     return declarative_pose(w2, w3, prob, cfg.solver, cfg.optim.grad_tol)
 
 
-def l1_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
-    """Mean over the successful samples of ``|p* - p_gt|_1`` (eq. 7), each multiplied by
-    ``scale`` (B,) when given (``optim.balance``)."""
-    per = (p - p_gt).abs().sum(1)
-    if scale is not None:
-        per = per * scale
-    return (per * ok).sum() / ok.sum().clamp(min=1)
-
-
 def evaluate_loss(nets, samples: list[dict], cfg: TrainConfig, n2d: int | None = None,
                   constant: tuple[float, float] | None = None) -> tuple[float, int]:
     """Mean L1 pose loss over ``samples`` (over their chains, ``data.chain_length`` > 1) and the
@@ -610,10 +604,7 @@ def evaluate_loss(nets, samples: list[dict], cfg: TrainConfig, n2d: int | None =
                 p, ok = declarative_pose(w2, w3, prob, cfg.solver, cfg.optim.grad_tol)
             else:
                 p, ok = pose_from_batch(nets, batch, cfg, n2d)
-            if L == 1:
-                per = (p - batch["p_gt"]).abs().sum(1)
-            else:
-                per, ok = chain_pose_loss(p, batch["p_gt"], ok, L)
+            per, ok = chain_pose_loss(p, batch["p_gt"], ok, L)
             total += float((per * ok).sum())
             count += int(ok.sum())
             failed += int((~ok).sum())
@@ -720,13 +711,11 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
             idx = [m for c in perm[k:k + per_step] for m in chains[c]]
             batch = collate([train_set[m] for m in idx])
             p, ok = pose_from_batch(model, batch, cfg)
-            if L == 1:
-                failed += int((~ok).sum())
-                loss = l1_pose_loss(p, batch["p_gt"], ok, objective.factors[idx] if objective.balanced else None)
-            else:
-                per, ok_chain = chain_pose_loss(p, batch["p_gt"], ok, L)
-                failed += int((~ok_chain).sum())
-                loss = (per * ok_chain).sum() / ok_chain.sum().clamp(min=1)
+            per, ok = chain_pose_loss(p, batch["p_gt"], ok, L)       # eq. 7 per pair, or per chain
+            failed += int((~ok).sum())
+            if objective.balanced:
+                per = per * objective.factors[idx]
+            loss = (per * ok).sum() / ok.sum().clamp(min=1)     # mean over the successful pairs / chains
             opt.zero_grad()
             loss.backward()
             opt.step()

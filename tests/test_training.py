@@ -1,5 +1,6 @@
 """`slam train` (single process): a tiny end-to-end training writes a usable, reproducible checkpoint."""
 import numpy as np
+import pytest
 import torch
 import yaml
 
@@ -324,11 +325,8 @@ def test_rigid_prior_flow_and_the_third_input_layout(synth_dir):
     assert torch.allclose(rigid[..., 10:, :], flow[..., 10:, :], atol=1e-4)
     assert torch.equal(rigid[..., :10, :], measured[..., :10, :])
     inp = _inputs()
-    try:
+    with pytest.raises(ValueError, match="rigid prior flow"):
         network_inputs(inp, 8, 3)
-        raise AssertionError("version 3 without a rigid flow")
-    except ValueError as err:
-        assert "rigid prior flow" in str(err)
     inp.rigid_flow = inp.flow + 0.0
     x2, x3 = network_inputs(inp, 8, 3)
     assert (x2.shape[1], x3.shape[1]) == IN_CHANNELS[3] == (15, 22) and torch.equal(x3[:, :15], x2)
@@ -383,11 +381,8 @@ def test_fourth_input_layout_compares_the_reference_with_the_map(synth_dir, tmp_
     assert float(dev[0, 0, :, 4:].abs().max()) == 0
 
     inp = _inputs()
-    try:
+    with pytest.raises(ValueError, match="map's depth"):
         network_inputs(inp, 8, 4)
-        raise AssertionError("version 4 without the map's depth")
-    except ValueError as err:
-        assert "map's depth" in str(err)
     inp.model_depth_ref = inp.depth_ref * 0.99
     x2, x3 = network_inputs(inp, 8, 4)
     assert (x2.shape[1], x3.shape[1]) == IN_CHANNELS[4] == (15, 22) and torch.equal(x3[:, :15], x2)
