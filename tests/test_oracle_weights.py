@@ -101,3 +101,19 @@ def test_masking_moving_tissue_helps_the_3d_residual_only_on_exact_depth(synth_d
     assert exact[1] < 0.5 * exact[0]            # 0.055 -> 0.016 mm when written
     assert stereo[1] > 0.9 * stereo[0]          # 0.79 -> 1.15 mm when written
     assert exact[0] < 0.2 * stereo[0]           # and exact depth tracks far better to begin with
+
+
+def test_oracle_tool_scales_w3d_on_tissue_displaced_from_rest(synth_dir):
+    """The rows that meet issue 4's w3D check by construction: w3D times a factor where the tissue
+    is displaced from its rest shape by more than 0.5 mm, as it is or with the frame's total w3D
+    kept (moved onto the other pixels). Factor 1 changes nothing; factor 0 changes the poses."""
+    tool = load_tool()
+    data = synth_dir("breathing", 8)
+    rows = tool.run_sequence(data, ["weights.mode=constant"], gaps=[1], thresholds=[0.005], rest_scales=[1.0, 0.0])
+    by = {(r["mask"], r["threshold_mm"]): r["pair_error_mm"] for r in rows}
+    none = next(r for r in rows if r["mask"] == "none")
+    assert 0.0 < none["share_rest>0.5"] < 1.0          # some of the view is displaced, some not
+    assert by[("w3D rest", 1.0)] == by[("none", 0.0)] == by[("w3D rest, same total", 1.0)]
+    assert by[("w3D rest", 0.0)] != by[("none", 0.0)] != by[("w3D rest, same total", 0.0)]
+    assert by[("w3D rest", 0.0)] != by[("w3D rest, same total", 0.0)]
+    assert "displaced from rest > 0.5 mm, same total" in tool.format_row(rows[-1])

@@ -32,7 +32,8 @@ def pair_motion(nonrigid_cur: torch.Tensor, nonrigid_ref: torch.Tensor, flow: to
     return (nonrigid_cur - sample_by_flow(nonrigid_ref, flow)).abs()
 
 
-def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: list[float]) -> list[dict]:
+def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: list[float],
+                 rest_scales: list[float] = ()) -> list[dict]:
     from slam.config import load_config
     from slam.datasets import open_dataset
     from slam.errors import SlamError
@@ -52,6 +53,11 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
             sel = w3 > 0
             setting["stats"].append((w3[sel], motion[sel], setting["cur"][sel]))
             return w2, w3
+        if setting["mask"].startswith("w3D rest"):  # the issue's check met by construction: w3D scaled where displaced
+            scaled = w3 * torch.where(setting["cur"] > 0.5, setting["threshold"], 1.0).to(w3.dtype)
+            if setting["mask"] == "w3D rest, same total":   # the 3D term keeps its weight, moved onto the rest
+                scaled = scaled * (w3.sum() / scaled.sum().clamp(min=1e-12))
+            return w2, scaled
         keep = (motion <= setting["threshold"]).to(w3.dtype)
         return (w2 * keep if setting["mask"] == "w2D & w3D" else w2), w3 * keep
 
@@ -68,7 +74,8 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
         nonrigid.append(torch.from_numpy(f.extras["nonrigid_mm"])[None, None].float())
     rows = []
     for gap in gaps:
-        masks = [("none", 0.0)] + [("w3D", t) for t in thresholds] + [("w2D & w3D", thresholds[0])]
+        masks = ([("none", 0.0)] + [("w3D", t) for t in thresholds] + [("w2D & w3D", thresholds[0])]
+                 + [(kind, f) for f in rest_scales for kind in ("w3D rest", "w3D rest, same total")])
         for mask, threshold in masks:
             setting.update(mask=mask, threshold=threshold, stats=[])
             errors, T, T_gt, dev = [], np.eye(4), np.eye(4), []
@@ -121,7 +128,10 @@ def detector_ratios(motion, rest, thresholds: list[float]) -> dict:
 
 def format_row(r: dict) -> str:
     ate = f"{r['chained_ate_mm']:.3f}" if r["chained_ate_mm"] is not None else "-"
-    mask = r["mask"] if r["mask"] == "none" else f"{r['mask']} = 0 where motion > {r['threshold_mm']:g} mm"
+    mask = (r["mask"] if r["mask"] == "none" else
+            f"w3D x {r['threshold_mm']:g} where displaced from rest > 0.5 mm" if r["mask"] == "w3D rest" else
+            f"w3D x {r['threshold_mm']:g} where displaced from rest > 0.5 mm, same total" if r["mask"] == "w3D rest, same total" else
+            f"{r['mask']} = 0 where motion > {r['threshold_mm']:g} mm")
     return f"| {r['sequence']} | {r['gap']} | {mask} | {r['pair_error_mm']:.4f} | {ate} |"
 
 
@@ -130,6 +140,9 @@ def main() -> None:
     ap.add_argument("data", nargs="+", type=Path, help="synthetic sequences (slam synth) with nonrigid/")
     ap.add_argument("--gaps", nargs="+", type=int, default=[1, 5])
     ap.add_argument("--thresholds", nargs="+", type=float, default=[0.01, 0.02, 0.05])
+    ap.add_argument("--rest-scales", nargs="*", type=float, default=[],
+                    help="also solve with w3D multiplied by each factor on pixels displaced from the rest shape by "
+                         "more than 0.5 mm (a w3D that meets issue 4's check by construction)")
     ap.add_argument("--set", action="append", default=[], help="config override, e.g. weights.mode=constant")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", type=Path, default=Path("runs/oracle_weights"))
@@ -138,7 +151,7 @@ def main() -> None:
     header = ("| sequence | gap | weights | translation error per pair (mm) | ATE of the chained poses (mm) |\n"
               "|---|---|---|---|---|")
     print(header)
-    rows = [r for data in args.data for r in run_sequence(data, args.set, args.gaps, args.thresholds)]
+    rows = [r for data in args.data for r in run_sequence(data, args.set, args.gaps, args.thresholds, args.rest_scales)]
     ratio_keys = sorted({k for r in rows for k in r if k.startswith("w3d_ratio_")})
     ratios = ["| sequence | gap | " + " | ".join(k.removeprefix("w3d_ratio_") for k in ratio_keys) + " |",
               "|---" * (len(ratio_keys) + 2) + "|"]
