@@ -468,6 +468,9 @@ def test_chain_loss_on_consecutive_pairs(tmp_path):
     T_gt = se3_exp(p_gt).view(2, 3, 4, 4)
     expected = (se3_log(T[:, 0] @ T[:, 1] @ T[:, 2]) - se3_log(T_gt[:, 0] @ T_gt[:, 1] @ T_gt[:, 2])).abs().sum(1)
     assert torch.allclose(loss.detach(), expected, atol=1e-10)
+    mixed, _ = chain_pose_loss(p, p_gt, ok, 3, link_weight=2.0)   # plus 2 x the links' mean eq. 7
+    links = (p.detach() - p_gt).abs().sum(1).view(2, 3).mean(1)
+    assert torch.allclose(mixed.detach(), expected + 2.0 * links, atol=1e-10) and float(links.min()) > 0
     loss.sum().backward()
     assert bool((p.grad.abs().sum(1) > 0).all())
     ok[4] = False                                                  # a failed link fails its chain only
@@ -488,3 +491,7 @@ def test_chain_loss_on_consecutive_pairs(tmp_path):
     assert len(chains_of(val, 3)) * 3 == len(val) > 0               # validation holds whole chains
     nets, _ = load_weight_networks(tmp_path / "chain" / "weights_2d3d.pt", "2d3d")
     assert abs(evaluate_loss(nets, val, tcfg)[0] - ckpt["val_loss"]) < 1e-6
+    assert evaluate_loss(nets, val, load_train_config(path, ["optim.link_weight=3"]))[0] > ckpt["val_loss"]
+    from slam.errors import ConfigError
+    with pytest.raises(ConfigError, match="link_weight.*chain_length"):
+        load_train_config(path, ["data.chain_length=1", "optim.link_weight=1"])
