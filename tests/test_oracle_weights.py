@@ -105,8 +105,9 @@ def test_masking_moving_tissue_helps_the_3d_residual_only_on_exact_depth(synth_d
 
 def test_oracle_tool_scales_w3d_on_tissue_displaced_from_rest(synth_dir):
     """The rows that meet issue 4's w3D check by construction: w3D times a factor where the tissue
-    is displaced from its rest shape by more than 0.5 mm, as it is or with the frame's total w3D
-    kept (moved onto the other pixels). Factor 1 changes nothing; factor 0 changes the poses."""
+    is displaced from its rest shape by more than 0.5 mm, as it is, with the frame's total w3D
+    kept (moved onto the other pixels), or with w2D scaled too. Factor 1 changes nothing; factor 0
+    changes the poses."""
     tool = load_tool()
     data = synth_dir("breathing", 8)
     rows = tool.run_sequence(data, ["weights.mode=constant"], gaps=[1], thresholds=[0.005], rest_scales=[1.0, 0.0])
@@ -116,4 +117,6 @@ def test_oracle_tool_scales_w3d_on_tissue_displaced_from_rest(synth_dir):
     assert by[("w3D rest", 1.0)] == by[("none", 0.0)] == by[("w3D rest, same total", 1.0)]
     assert by[("w3D rest", 0.0)] != by[("none", 0.0)] != by[("w3D rest, same total", 0.0)]
     assert by[("w3D rest", 0.0)] != by[("w3D rest, same total", 0.0)]
-    assert "displaced from rest > 0.5 mm, same total" in tool.format_row(rows[-1])
+    assert by[("w2D & w3D rest", 1.0)] == by[("none", 0.0)] != by[("w2D & w3D rest", 0.0)] != by[("w3D rest", 0.0)]
+    assert "displaced from rest > 0.5 mm, same total" in tool.format_row(rows[-2])
+    assert tool.format_row(rows[-1]).startswith("| breathing") and "w2D and w3D x 0 where displaced" in tool.format_row(rows[-1])

@@ -2,13 +2,16 @@
 sequences with the generator's non-rigid ground truth (``nonrigid/``).
 
     .venv/bin/python tools/oracle_weights.py DATA [DATA ...] [--gaps 1 5] [--thresholds 0.01 0.02 0.05]
-        [--set weights.mode=learned ...] [--out runs/oracle_weights]
+        [--rest-scales 0.3 0] [--set weights.mode=learned ...] [--out runs/oracle_weights]
 
 For frame pairs ``gap`` frames apart, the VO's pose is solved with the weights of the run's config
 (learned 2D&3D by default), then again with w3D set to zero on the pixels whose tissue moved
 non-rigidly between the two frames by more than a threshold (per-pair motion: the change of the
 non-rigid displacement along the flow; exact for breathing, whose displacement keeps its
-direction), and with both w2D and w3D zero there.  It prints, per sequence, gap and weighting, the
+direction), and with both w2D and w3D zero there.  With ``--rest-scales F``, also with w3D times F
+on the pixels the issue's check counts as moving (displaced from the rest shape by more than 0.5
+mm: a w3D that meets the check by construction), as is, with the frame's total w3D kept (the
+removed weight moved onto the other pixels), and with w2D times F there too.  It prints, per sequence, gap and weighting, the
 mean translation error per pair (what the training loss of eq. 7 sees) and, for gap 1, the ATE of
 the chained poses (first pose aligned; the static-camera ATE is what drifts).  It also reports the
 learned w3D's ratio between moving and still pixels (by per-pair motion and by displacement from
@@ -53,11 +56,12 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
             sel = w3 > 0
             setting["stats"].append((w3[sel], motion[sel], setting["cur"][sel]))
             return w2, w3
-        if setting["mask"].startswith("w3D rest"):  # the issue's check met by construction: w3D scaled where displaced
-            scaled = w3 * torch.where(setting["cur"] > 0.5, setting["threshold"], 1.0).to(w3.dtype)
+        if "rest" in setting["mask"]:   # the issue's check met by construction: w3D (and w2D) scaled where displaced
+            factor = torch.where(setting["cur"] > 0.5, setting["threshold"], 1.0).to(w3.dtype)
+            scaled = w3 * factor
             if setting["mask"] == "w3D rest, same total":   # the 3D term keeps its weight, moved onto the rest
                 scaled = scaled * (w3.sum() / scaled.sum().clamp(min=1e-12))
-            return w2, scaled
+            return (w2 * factor if setting["mask"] == "w2D & w3D rest" else w2), scaled
         keep = (motion <= setting["threshold"]).to(w3.dtype)
         return (w2 * keep if setting["mask"] == "w2D & w3D" else w2), w3 * keep
 
@@ -75,7 +79,7 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
     rows = []
     for gap in gaps:
         masks = ([("none", 0.0)] + [("w3D", t) for t in thresholds] + [("w2D & w3D", thresholds[0])]
-                 + [(kind, f) for f in rest_scales for kind in ("w3D rest", "w3D rest, same total")])
+                 + [(kind, f) for f in rest_scales for kind in ("w3D rest", "w3D rest, same total", "w2D & w3D rest")])
         for mask, threshold in masks:
             setting.update(mask=mask, threshold=threshold, stats=[])
             errors, T, T_gt, dev = [], np.eye(4), np.eye(4), []
@@ -131,6 +135,7 @@ def format_row(r: dict) -> str:
     mask = (r["mask"] if r["mask"] == "none" else
             f"w3D x {r['threshold_mm']:g} where displaced from rest > 0.5 mm" if r["mask"] == "w3D rest" else
             f"w3D x {r['threshold_mm']:g} where displaced from rest > 0.5 mm, same total" if r["mask"] == "w3D rest, same total" else
+            f"w2D and w3D x {r['threshold_mm']:g} where displaced from rest > 0.5 mm" if r["mask"] == "w2D & w3D rest" else
             f"{r['mask']} = 0 where motion > {r['threshold_mm']:g} mm")
     return f"| {r['sequence']} | {r['gap']} | {mask} | {r['pair_error_mm']:.4f} | {ate} |"
 
@@ -142,7 +147,8 @@ def main() -> None:
     ap.add_argument("--thresholds", nargs="+", type=float, default=[0.01, 0.02, 0.05])
     ap.add_argument("--rest-scales", nargs="*", type=float, default=[],
                     help="also solve with w3D multiplied by each factor on pixels displaced from the rest shape by "
-                         "more than 0.5 mm (a w3D that meets issue 4's check by construction)")
+                         "more than 0.5 mm (a w3D that meets issue 4's check by construction), as is, with the "
+                         "frame's total w3D kept, and with w2D multiplied too")
     ap.add_argument("--set", action="append", default=[], help="config override, e.g. weights.mode=constant")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", type=Path, default=Path("runs/oracle_weights"))
