@@ -45,10 +45,15 @@ def test_table_has_per_scenario_mean_and_both_averages(tmp_path, monkeypatch, ca
             w = r["w3d"]
             assert 0 < w["fraction_moving"] < 1
             assert 0 < w["moving"] < 1 and 0 < w["still"] < 1 and 0 < w["w2d_moving"] < 1 and 0 < w["w2d_still"] < 1
+            # frame2frame: also split by motion between the two frames (breathing moves some tissue every frame)
+            assert w["pair_threshold_mm"] == 0.02 and 0 < w["fraction_pair_moving"] < 1
+            assert 0 < w["pair_moving"] < 1 and 0 < w["pair_still"] < 1 and 0 < w["w2d_pair_moving"] < 1
             line = next(line for line in check if line.startswith(f"| learned 2D&3D | breathing s{r['seed']} "))
-            assert line.endswith(f"| {w['moving'] / w['still']:.2f} | {w['w2d_moving'] / w['w2d_still']:.2f} |")
+            assert line.endswith(f"| {w['moving'] / w['still']:.2f} | {w['w2d_moving'] / w['w2d_still']:.2f} "
+                                 f"| {w['pair_moving'] / w['pair_still']:.2f} | {w['w2d_pair_moving'] / w['w2d_pair_still']:.2f} |")
         else:
             assert r["method"] != "w = 1" or r["w3d"] is None
+    assert "| w3D ratio, moved > 0.02 mm between frames | w2D ratio, moved > 0.02 mm between frames |" in table
 
 
 def test_weight_check_lists_every_learned_method():
@@ -105,3 +110,53 @@ def test_weight_ratio_summary_covers_scanning_too():
     assert rows == ["| learned 2D&3D | breathing | 3 | 1.00 (0.50-1.50) | 0.50 (0.50-0.50) |",
                     "| learned 2D&3D | scanning | 1 | 1.00 (1.00-1.00) | 1.00 (1.00-1.00) |",
                     "| learned 2D | scanning | 1 | - | 0.80 (0.80-0.80) |"]
+
+
+def test_weight_stats_split_by_rest_shape_and_by_motion_between_frames():
+    """The logger's two splits on hand-made frames: displacement from the rest shape (issue 4's
+    check) and motion between the two frames along the flow; a failed frame breaks the chain."""
+    import torch
+    from types import SimpleNamespace as NS
+
+    H, W = 4, 6
+    w3 = torch.full((1, 1, H, W), 0.02)
+    w3[..., :3] = 0.01                                   # half the weight on the left half
+    w2 = torch.ones(1, 1, H, W)
+    zero_flow = torch.zeros(1, 2, H, W)
+
+    def frame(nonrigid):
+        return NS(extras={"nonrigid_mm": nonrigid.astype(np.float32)})
+
+    def track(flow=zero_flow, failed=False):
+        return NS(failed=failed, flow=flow, w3d=w3, w2d=w2)
+
+    displaced = np.zeros((H, W))
+    displaced[:, :3] = 0.6                               # the left half is displaced from rest
+    st = B.WeightStats(pair_threshold_mm=0.02)
+    st.log_frame(0, frame(np.zeros((H, W))), None, None, None, None, None, None)
+    st.log_frame(1, frame(displaced), None, track(), None, None, None, None)     # left half moved 0.6 mm
+    st.log_frame(2, frame(displaced), None, track(), None, None, None, None)     # nothing moved
+    m = st.means()
+    assert abs(m["moving"] / m["still"] - 0.5) < 1e-6                           # 0.01 against 0.02
+    assert abs(m["pair_moving"] - 0.01) < 1e-6 and abs(m["pair_still"] - (0.02 * 12 + 0.015 * 24) / 36) < 1e-6
+    assert abs(m["fraction_pair_moving"] - 12 / 48) < 1e-9 and m["w2d_pair_moving"] == m["w2d_pair_still"] == 1.0
+    # the flow: the tissue at x sits at x + 1 px in the reference; shifted the same way, nothing moved
+    shifted = np.zeros((H, W))
+    shifted[:, :2] = 0.6
+    st = B.WeightStats(pair_threshold_mm=0.02)
+    st.log_frame(0, frame(displaced), None, None, None, None, None, None)
+    flow = torch.zeros(1, 2, H, W)
+    flow[:, 0] = 1.0
+    st.log_frame(1, frame(shifted), None, track(flow), None, None, None, None)
+    assert st.sums["pair_moving"][1] == 0 and st.sums["pair_still"][1] == H * W
+    st = B.WeightStats(pair_threshold_mm=0.02)                                  # without the flow: column 2 "moved"
+    st.log_frame(0, frame(displaced), None, None, None, None, None, None)
+    st.log_frame(1, frame(shifted), None, track(), None, None, None, None)
+    assert st.sums["pair_moving"][1] == H
+    # a failed frame: the next is not split by motion (its reference is not known to be the frame before)
+    st = B.WeightStats(pair_threshold_mm=0.02)
+    st.log_frame(0, frame(np.zeros((H, W))), None, None, None, None, None, None)
+    st.log_frame(1, frame(displaced), None, track(failed=True), None, None, None, None)
+    st.log_frame(2, frame(displaced), None, track(), None, None, None, None)
+    assert st.sums["pair_moving"][1] == st.sums["pair_still"][1] == 0 and st.sums["moving"][1] == 12
+    assert "pair_moving" not in B.WeightStats().means()                         # frame2model: no such split

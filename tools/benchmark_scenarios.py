@@ -33,6 +33,11 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+import torch
+
+from vo.geometry import sample_by_flow
+
+PAIR_MOTION_MM = 0.02   # "moved between the two frames" (the median per-frame non-rigid motion is 0.02-0.04 mm)
 
 METHODS = {
     "w = 1": ["weights.mode=constant", "weights.w2d=1.0", "weights.w3d=1.0"],
@@ -46,23 +51,43 @@ METHODS = {
 class WeightStats:
     """A pipeline logger that accumulates the mean w3D (and w2D) on pixels whose tissue moved
     non-rigidly by more than ``threshold_mm`` and on the others (keys ``moving`` / ``still`` for
-    w3D, ``w2d_moving`` / ``w2d_still`` for w2D)."""
+    w3D, ``w2d_moving`` / ``w2d_still`` for w2D).
 
-    def __init__(self, threshold_mm: float = 0.5):
+    With ``pair_threshold_mm`` (frame2frame, where the reference is the previous frame) it also
+    splits the pixels by how far their tissue moved between the two frames, ``|n_k(x) - n_{k-1}(x +
+    F(x))|`` along the flow F (keys ``pair_moving`` / ``pair_still`` and ``w2d_pair_...``): what a
+    frame-to-frame reference is hurt by, where the displacement from the rest shape is what issue
+    4's check counts. A frame after a failed one is left out of that split."""
+
+    def __init__(self, threshold_mm: float = 0.5, pair_threshold_mm: float | None = None):
         self.threshold = threshold_mm
-        self.sums = {key: [0.0, 0] for key in ("moving", "still", "w2d_moving", "w2d_still")}
+        self.pair_threshold = pair_threshold_mm
+        keys = ["moving", "still"] + (["pair_moving", "pair_still"] if pair_threshold_mm is not None else [])
+        self.sums = {prefix + key: [0.0, 0] for key in keys for prefix in ("", "w2d_")}
+        self.previous = None    # (frame index, (1, 1, H, W) displacement) of the last frame tracked
 
     def log_frame(self, k, frame, view, track, record, map_, camera, pose_rect):
-        if track is None or track.failed or "nonrigid_mm" not in frame.extras:
+        if "nonrigid_mm" not in frame.extras:
             return
         nonrigid = frame.extras["nonrigid_mm"]
+        previous, self.previous = self.previous, None
+        if track is not None and track.failed:
+            return
+        current = torch.from_numpy(np.ascontiguousarray(nonrigid, dtype=np.float32))[None, None]
+        self.previous = (k, current)
+        if track is None:
+            return
+        splits = [("", nonrigid > self.threshold)]
+        if self.pair_threshold is not None and previous is not None and previous[0] == k - 1:
+            motion = (current - sample_by_flow(previous[1], track.flow.float())).abs()[0, 0].numpy()
+            splits.append(("pair_", motion > self.pair_threshold))
         for prefix, weights in (("", track.w3d), ("w2d_", track.w2d)):
             w = weights[0, 0].numpy()
             valid = w > 0
-            for key, sel in (("moving", valid & (nonrigid > self.threshold)),
-                             ("still", valid & (nonrigid <= self.threshold))):
-                self.sums[prefix + key][0] += float(w[sel].sum())
-                self.sums[prefix + key][1] += int(sel.sum())
+            for split, moved in splits:
+                for key, sel in (("moving", valid & moved), ("still", valid & ~moved)):
+                    self.sums[prefix + split + key][0] += float(w[sel].sum())
+                    self.sums[prefix + split + key][1] += int(sel.sum())
 
     def log_final(self, *args):
         pass
@@ -71,6 +96,10 @@ class WeightStats:
         out = {k: (s / n if n else None) for k, (s, n) in self.sums.items()}
         total = self.sums["moving"][1] + self.sums["still"][1]
         out["fraction_moving"] = self.sums["moving"][1] / total if total else None
+        if self.pair_threshold is not None:
+            pairs = self.sums["pair_moving"][1] + self.sums["pair_still"][1]
+            out["pair_threshold_mm"] = self.pair_threshold
+            out["fraction_pair_moving"] = self.sums["pair_moving"][1] / pairs if pairs else None
         return out
 
 
@@ -93,7 +122,8 @@ def run_one(job: dict) -> dict:
         overrides.append(f"weights.checkpoint={Path(job['checkpoints']) / f'weights_{residuals}.pt'}")
     # one torch thread per worker process (the workers share the cores)
     cfg = load_config(None, [*overrides, "logging.progress=false", "threads=1", *job["extra"]])
-    stats = WeightStats() if job["method"].startswith("learned") else None
+    pair = PAIR_MOTION_MM if cfg.tracking.mode == "frame2frame" else None    # the previous frame is the reference
+    stats = WeightStats(pair_threshold_mm=pair) if job["method"].startswith("learned") else None
     dataset = open_dataset(data, cfg.data)
     result = Pipeline(cfg, dataset, Path(job["out"]), logger=stats).run(progress=False)
     return {**{k: job[k] for k in ("scenario", "seed", "method")}, "ate_rmse_mm": result.metrics["ate_rmse_mm"],
@@ -231,50 +261,62 @@ def format_table(results: list[dict], scenarios: list[str], methods: list[str], 
     return "\n".join(lines)
 
 
+def _ratio(w: dict, moving: str, still: str) -> float | None:
+    return w[moving] / w[still] if w.get(moving) is not None and w.get(still) else None
+
+
+RATIOS = [("w3D ratio", "moving", "still"), ("w2D ratio", "w2d_moving", "w2d_still"),
+          ("w3D ratio, moved between frames", "pair_moving", "pair_still"),
+          ("w2D ratio, moved between frames", "w2d_pair_moving", "w2d_pair_still")]
+
+
 def weight_check(results: list[dict]) -> str:
     """One row per learned method and breathing / deforming sequence (the 2D&3D method first, then
-    scenario and seed order); a method without a 3D (2D) residual shows "-" for its w3D (w2D)."""
+    scenario and seed order); a method without a 3D (2D) residual shows "-" for its w3D (w2D). The
+    ratios by motion between the frames appear when the run recorded them (frame2frame)."""
     order = {m: i for i, m in enumerate(["learned 2D&3D", "learned 3D", "learned 2D"])}
     rows = {}
     for r in results:
         if r.get("w3d") and r["scenario"] in ("breathing", "deforming"):
             rows[(order.get(r["method"], 9), r["method"], r["scenario"], r["seed"])] = r["w3d"]
+    ratios = [rt for rt in RATIOS if any(w.get(rt[1]) is not None for w in rows.values())] or RATIOS[:2]
+    pair_mm = next((w["pair_threshold_mm"] for w in rows.values() if w.get("pair_threshold_mm")), None)
     lines = []
     for (_, method, scenario, seed), w in sorted(rows.items()):
-        ratio = "-"
-        if w.get("moving") is not None and w.get("still"):
-            ratio = f"{w['moving'] / w['still']:.2f}"
         frac = w.get("fraction_moving")
         frac = f"{frac:.2f}" if frac is not None else "-"
-        w2 = "-"
-        if w.get("w2d_moving") is not None and w.get("w2d_still"):
-            w2 = f"{w['w2d_moving'] / w['w2d_still']:.2f}"
         m3 = f"{w['moving']:.4f} | {w['still']:.4f}" if w.get("moving") is not None else "- | -"
-        lines.append(f"| {method} | {scenario} s{seed} | {frac} | {m3} | {ratio} | {w2} |")
+        cells = [f"{v:.2f}" if (v := _ratio(w, hi, lo)) is not None else "-" for _, hi, lo in ratios]
+        lines.append(f"| {method} | {scenario} s{seed} | {frac} | {m3} | " + " | ".join(cells) + " |")
     if not lines:
         return ""
-    return "\n".join(["| method | sequence | share of pixels non-rigid > 0.5 mm | mean w3D, non-rigid | mean w3D, other "
-                      "| w3D ratio | w2D ratio |", "|---|---|---|---|---|---|---|", *lines])
+    names = [name.replace("moved between frames", f"moved > {pair_mm:g} mm between frames") if pair_mm else name
+             for name, _, _ in ratios]
+    return "\n".join(["| method | sequence | share of pixels non-rigid > 0.5 mm | mean w3D, non-rigid | mean w3D, other | "
+                      + " | ".join(names) + " |", "|---" * (5 + len(ratios)) + "|", *lines])
 
 
 def weight_ratio_summary(results: list[dict], scenarios: list[str]) -> str:
     """Per learned method and scenario (scanning too): the median and range over the sequences of the
-    w3D and w2D ratios (non-rigid > 0.5 mm / the rest). On scanning the camera's own flow can hide
-    the breathing that the ratios show on a static camera."""
+    w3D and w2D ratios (non-rigid > 0.5 mm / the rest; and by motion between the frames when
+    recorded). On scanning the camera's own flow can hide the breathing that the ratios show on a
+    static camera."""
+    stats_all = [r["w3d"] for r in results if r.get("w3d")]
+    ratios = [rt for rt in RATIOS if any(w.get(rt[1]) is not None for w in stats_all)] or RATIOS[:2]
     lines = []
     for method in ["learned 2D&3D", "learned 3D", "learned 2D"]:
         for s in scenarios:
             stats = [r["w3d"] for r in results if r["method"] == method and r["scenario"] == s and r.get("w3d")]
             cells = []
-            for hi, lo in (("moving", "still"), ("w2d_moving", "w2d_still")):
-                v = [w[hi] / w[lo] for w in stats if w.get(hi) is not None and w.get(lo)]
+            for _, hi, lo in ratios:
+                v = [x for w in stats if (x := _ratio(w, hi, lo)) is not None]
                 cells.append(f"{np.median(v):.2f} ({min(v):.2f}-{max(v):.2f})" if v else "-")
-            if stats and cells != ["-", "-"]:
-                lines.append(f"| {method} | {s} | {len(stats)} | {cells[0]} | {cells[1]} |")
+            if stats and any(c != "-" for c in cells):
+                lines.append(f"| {method} | {s} | {len(stats)} | " + " | ".join(cells) + " |")
     if not lines:
         return ""
-    return "\n".join(["| method | scenario | sequences | w3D ratio, median (range) | w2D ratio, median (range) |",
-                      "|---|---|---|---|---|", *lines])
+    return "\n".join(["| method | scenario | sequences | " + " | ".join(f"{name}, median (range)" for name, _, _ in ratios)
+                      + " |", "|---" * (3 + len(ratios)) + "|", *lines])
 
 
 if __name__ == "__main__":
