@@ -78,6 +78,15 @@ class TrackingConfig:
             ``chained``; ``poses: groundtruth`` with a learned w3D): it depends on the two
             frames alone. Same results either way (the flow is taken only when the reference
             is that frame); its time is the ``flow_ahead`` stage, spent in the thread.
+        keyframe_gap: frame2frame: a tracked frame becomes the reference (keyframe) of the
+            frames after it once it is this many frames after the current keyframe; the frames
+            in between are tracked against the keyframe, not against the frame before them. 1
+            (the default) is the paper's: every frame against the previous one. With 3 a static
+            camera's pose is chained a third as often (the per-frame noise adds up three
+            times slower) and the reference stands further from the current frame (the
+            tissue's motion in between rises above the stereo noise); the networks are trained
+            on pairs 1-5 frames apart. A failed frame makes the last tracked frame the keyframe.
+            README, "Keyframe reference".
     """
 
     mode: str = "frame2frame"
@@ -91,6 +100,7 @@ class TrackingConfig:
     poses: str = "estimated"
     stereo_ahead: bool = True
     flow_ahead: bool = True
+    keyframe_gap: int = 1
 
 
 @dataclass
@@ -278,6 +288,7 @@ def validate(config: SlamConfig) -> None:
         (0.0 <= config.tracking.min_model_coverage <= 1.0, "tracking.min_model_coverage must be in [0, 1]"),
         (0.0 <= config.tracking.chain_gain <= 1.0, "tracking.chain_gain must be in [0, 1]"),
         (0 <= config.tracking.refine_passes <= 5, "tracking.refine_passes must be in 0..5"),
+        (config.tracking.keyframe_gap >= 1, "tracking.keyframe_gap must be >= 1 (1 = every frame against the previous one)"),
         (config.weights.w2d >= 0 and config.weights.w3d >= 0, "weights.w2d/w3d must be >= 0"),
     ]
     for ok, message in checks:

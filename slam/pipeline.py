@@ -39,7 +39,7 @@ class FrameRecord:
     pose: np.ndarray  # T_wc of the original left camera, mm
     failed: bool
     reason: str = ""
-    reference: str = ""  # previous_frame | model | first
+    reference: str = ""  # previous_frame | keyframe (an earlier frame, tracking.keyframe_gap) | model | first
     iterations: int = 0
     cost: float = float("nan")
 
@@ -179,6 +179,9 @@ class Pipeline:
         self.fallbacks = 0
         self.exposure = FusionExposure(tc.fuse_exposure)
         self.velocity = np.eye(4)   # the last tracked relative motion: solver.init=constant_velocity's start
+        # frame2frame's reference with tracking.keyframe_gap > 1: (frame position, view, rectified pose)
+        self.keyframe_gap = tc.keyframe_gap if tc.mode == "frame2frame" else 1
+        self._keyframe: Optional[tuple[int, View, np.ndarray]] = None
         self._ahead_view: Optional[View] = None   # the read-ahead thread's last view (tracking.flow_ahead)
         self._waiting_for = -1      # the frame the main thread waits for (-1: none; tracking.flow_ahead)
 
@@ -273,6 +276,7 @@ class Pipeline:
         writer = TumStreamWriter(self.out_dir / "trajectory.txt")
         bar = tqdm(total=n, unit="frame", disable=not progress, dynamic_ncols=True, leave=False)
         self._ahead_view = None
+        self._keyframe = None
         reader = Prefetcher(self._read_view, n)
         threads_before = torch.get_num_threads()
         torch.set_num_threads(self._torch_threads())
@@ -377,9 +381,15 @@ class Pipeline:
             rec = FrameRecord(index, stamp, pose_rect @ self.R1, False, reference="first")
             self._fuse(view, None, pose_rect, index)
             self._log(k, frame, view, None, pose_rect, rec)
+            self._keyframe = (k, view, pose_rect) if self.keyframe_gap > 1 else None
             return rec, pose_rect, view
         ref, flow_ref, kind = self._reference(last_view, pose_rect)
+        ref_pose = pose_rect
         T_init = self.velocity if self.config.solver.init == "constant_velocity" else None
+        if self._keyframe is not None and self._keyframe[1] is not last_view:   # an earlier frame is the reference
+            ref, ref_pose, kind = self._keyframe[1], self._keyframe[2], "keyframe"
+            if T_init is not None:      # the motion since the keyframe, continued by one frame's
+                T_init = np.linalg.inv(ref_pose) @ pose_rect @ self.velocity
         track = self.odometry.track(view, ref, flow_ref, T_init=T_init,
                                     chain_gain=self.chain_gain if kind == "model" else 0.0,
                                     model_reference=kind == "model")
@@ -388,14 +398,17 @@ class Pipeline:
         if track.failed:
             rec = FrameRecord(index, stamp, pose_rect @ self.R1, True, track.reason, kind, track.iterations, track.cost)
             self._log(k, frame, view, track, pose_rect, rec)
+            self._keyframe = None       # the next frame goes against the last tracked one, and becomes the keyframe
             return rec, pose_rect, last_view
-        new_pose = pose_rect @ track.relative
+        new_pose = ref_pose @ track.relative
         if kind == "model":
             new_pose, track = self._refine(view, new_pose, track)
         self.velocity = np.linalg.inv(pose_rect) @ new_pose
         rec = FrameRecord(index, stamp, new_pose @ self.R1, False, "", kind, track.iterations, track.cost)
         self._fuse(view, track.w3d, new_pose, index)
         self._log(k, frame, view, track, new_pose, rec)
+        if self.keyframe_gap > 1 and (self._keyframe is None or k - self._keyframe[0] >= self.keyframe_gap):
+            self._keyframe = (k, view, new_pose)
         return rec, new_pose, view
 
     def _fusion_weight_only(self, view: View, last_view: Optional[View]) -> Optional[torch.Tensor]:

@@ -53,7 +53,7 @@ class WeightStats:
     non-rigidly by more than ``threshold_mm`` and on the others (keys ``moving`` / ``still`` for
     w3D, ``w2d_moving`` / ``w2d_still`` for w2D).
 
-    With ``pair_threshold_mm`` (frame2frame, where the reference is the previous frame) it also
+    With ``pair_threshold_mm`` (frame2frame with ``tracking.keyframe_gap`` 1: the reference is the previous frame) it also
     splits the pixels by how far their tissue moved between the two frames, ``|n_k(x) - n_{k-1}(x +
     F(x))|`` along the flow F (keys ``pair_moving`` / ``pair_still`` and ``w2d_pair_...``): what a
     frame-to-frame reference is hurt by, where the displacement from the rest shape is what issue
@@ -122,7 +122,8 @@ def run_one(job: dict) -> dict:
         overrides.append(f"weights.checkpoint={Path(job['checkpoints']) / f'weights_{residuals}.pt'}")
     # one torch thread per worker process (the workers share the cores)
     cfg = load_config(None, [*overrides, "logging.progress=false", "threads=1", *job["extra"]])
-    pair = PAIR_MOTION_MM if cfg.tracking.mode == "frame2frame" else None    # the previous frame is the reference
+    # the previous frame is every frame's reference (frame2frame without keyframes)
+    pair = PAIR_MOTION_MM if cfg.tracking.mode == "frame2frame" and cfg.tracking.keyframe_gap == 1 else None
     stats = WeightStats(pair_threshold_mm=pair) if job["method"].startswith("learned") else None
     dataset = open_dataset(data, cfg.data)
     result = Pipeline(cfg, dataset, Path(job["out"]), logger=stats).run(progress=False)

@@ -1,0 +1,76 @@
+"""``tracking.keyframe_gap``: frame2frame against a keyframe instead of the previous frame."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from slam.config import load_config
+from slam.datasets import open_dataset
+from slam.pipeline import Pipeline
+
+
+def _run(data, tmp_path, name, overrides, fail_at=None):
+    """Run the pipeline, recording which frame each frame was tracked against (and the solver's
+    start); ``fail_at``: that frame's tracking is reported failed."""
+    cfg = load_config(None, ["logging.progress=false", *overrides])
+    pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / name)
+    frame_of, calls = {}, []
+    track = pipe.odometry.track
+    make_view = pipe._make_view
+
+    def numbered(frame, timings):
+        view = make_view(frame, timings)
+        frame_of[id(view)] = len(frame_of)
+        return view
+
+    def spy(cur, ref, *args, T_init=None, **kwargs):
+        result = track(cur, ref, *args, T_init=T_init, **kwargs)
+        k = frame_of[id(cur)]
+        calls.append((k, frame_of[id(ref)], None if T_init is None else np.array(T_init), result.relative))
+        return dataclasses.replace(result, failed=True, reason="forced") if k == fail_at else result
+
+    pipe._make_view = numbered
+    pipe.odometry.track = spy
+    return pipe.run(progress=False), calls
+
+
+def test_keyframe_reference_order_and_poses(synth_dir, tmp_path):
+    """Gap 3: frames 1-3 against frame 0, 4-6 against 3, ...; the poses compose from the keyframe's
+    and stay as accurate as frame-to-frame on a moving camera; gap 1 is the previous frame."""
+    data = synth_dir("rigid", 10, (160, 128))
+    one, calls_one = _run(data, tmp_path, "gap1", ["tracking.stereo_ahead=false"])
+    assert [c[1] for c in calls_one] == list(range(9))
+    assert [r.reference for r in one.records] == ["first"] + ["previous_frame"] * 9
+    three, calls = _run(data, tmp_path, "gap3", ["tracking.keyframe_gap=3", "tracking.stereo_ahead=false"])
+    assert [(c[0], c[1]) for c in calls] == [(k, 3 * ((k - 1) // 3)) for k in range(1, 10)]
+    assert [r.reference for r in three.records] == ["first"] + ["previous_frame", "keyframe", "keyframe"] * 3
+    assert not any(r.failed for r in three.records)
+    assert three.metrics["ate_rmse_mm"] < 0.3 and one.metrics["ate_rmse_mm"] < 0.3
+    # each frame's pose is its keyframe's composed with the tracked relative motion
+    poses = {r.index: r.pose for r in three.records}
+    R1 = np.eye(4)
+    R1[:3, :3] = open_dataset(data, load_config(None, []).data).R1
+    for k, kf, _, rel in calls:
+        expected = poses[kf] @ R1.T @ rel @ R1
+        np.testing.assert_allclose(poses[k], expected, atol=1e-9)
+    # frame2model keeps its own reference: the gap does not apply
+    cfg = load_config(None, ["tracking.mode=frame2model", "tracking.keyframe_gap=3"])
+    assert Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / "f2m").keyframe_gap == 1
+
+
+def test_keyframe_after_a_failure_and_the_solver_start(synth_dir, tmp_path):
+    """A failed frame: the next is tracked against the last tracked frame and becomes the keyframe.
+    ``solver.init: constant_velocity`` starts a frame tracked against its keyframe from the
+    motion since the keyframe plus one more frame's."""
+    data = synth_dir("rigid", 10, (160, 128))
+    result, calls = _run(data, tmp_path, "fail", ["tracking.keyframe_gap=3", "tracking.stereo_ahead=false",
+                                                  "solver.init=constant_velocity"], fail_at=5)
+    assert [(c[0], c[1]) for c in calls] == [(1, 0), (2, 0), (3, 0), (4, 3), (5, 3), (6, 4), (7, 6), (8, 6), (9, 6)]
+    assert [r.failed for r in result.records] == [k == 5 for k in range(10)]
+    assert [r.reference for r in result.records][6:] == ["previous_frame", "previous_frame", "keyframe", "keyframe"]
+    for k, kf, start, rel in calls:
+        if k - kf >= 2 and k != 6:      # against an earlier keyframe: the start is close to the solved motion
+            step = np.linalg.norm(calls[k - 2][3][:3, 3]) if k >= 2 else 1.0
+            assert np.linalg.norm(start[:3, 3] - rel[:3, 3]) < 0.5 * max(step, 1e-3), k
+    assert result.metrics["ate_rmse_mm"] < 0.3
