@@ -135,8 +135,9 @@ class OptimConfig:
         balance_weights: ``(w2D, w3D)`` of the constant reference of ``balance: constant``.
         link_weight: ``data.chain_length`` > 1: each chain's loss also counts eq. 7 on its links,
             ``chain + link_weight * mean over links |p*_k - p_gt_k|_1`` (training and the
-            validation objective), so the chain's shared bias is learnt without giving up each
-            pair's accuracy; 0 (the default) is the chain loss alone.
+            validation objective), meant to learn the chain's shared bias without giving up each
+            pair's accuracy; measured with 4 and 16 it did not bring that accuracy back (README,
+            "Chains and their links"). 0 (the default) is the chain loss alone.
     """
 
     epochs: int = 40
