@@ -15,13 +15,14 @@ def _run(data, tmp_path, name, overrides, fail_at=None):
     start); ``fail_at``: that frame's tracking is reported failed."""
     cfg = load_config(None, ["logging.progress=false", *overrides])
     pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / name)
-    frame_of, calls = {}, []
+    frame_of, calls, views = {}, [], []
     track = pipe.odometry.track
     make_view = pipe._make_view
 
     def numbered(frame, timings):
         view = make_view(frame, timings)
-        frame_of[id(view)] = len(frame_of)
+        views.append(view)      # kept alive: ids of freed views are reused
+        frame_of[id(view)] = len(views) - 1
         return view
 
     def spy(cur, ref, *args, T_init=None, **kwargs):
