@@ -45,14 +45,15 @@ def test_weight_hook_sees_every_solve_and_a_common_scale_leaves_the_pose(synth_d
 
 
 def test_pair_motion_follows_the_flow():
-    tool = load_tool()
+    from vo.geometry import change_along_flow
+
     ref = torch.zeros(1, 1, 8, 10)
     ref[..., 3:5, 6] = 2.0
     cur = torch.zeros(1, 1, 8, 10)
     cur[..., 3:5, 4] = 2.5                                        # the same tissue, 2 px to the left
     flow = torch.zeros(1, 2, 8, 10)
     flow[:, 0] = 2.0                                               # current -> reference: +2 px in x
-    motion = tool.pair_motion(cur, ref, flow)
+    motion = change_along_flow(cur, ref, flow)
     assert torch.allclose(motion[..., 3:5, 4], torch.tensor(0.5))
     assert motion[..., :, :7].sum() == motion[..., 3:5, 4].sum()   # nothing else moved (inside the image)
 

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from vo.geometry import sample_by_flow
+from vo.geometry import change_along_flow
 
 PAIR_MOTION_MM = 0.02   # "moved between the two frames" (the median per-frame non-rigid motion is 0.02-0.04 mm)
 
@@ -79,7 +79,7 @@ class WeightStats:
             return
         splits = [("", nonrigid > self.threshold)]
         if self.pair_threshold is not None and previous is not None and previous[0] == k - 1:
-            motion = (current - sample_by_flow(previous[1], track.flow.float())).abs()[0, 0].numpy()
+            motion = change_along_flow(current, previous[1], track.flow.float())[0, 0].numpy()
             splits.append(("pair_", motion > self.pair_threshold))
         for prefix, weights in (("", track.w3d), ("w2d_", track.w2d)):
             w = weights[0, 0].numpy()

@@ -27,14 +27,6 @@ import numpy as np
 import torch
 
 
-def pair_motion(nonrigid_cur: torch.Tensor, nonrigid_ref: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
-    """``(1, 1, H, W)`` non-rigid motion (mm) of each current pixel's tissue between the views:
-    ``|n_cur(x) - n_ref(x + F(x))|`` for displacement magnitudes ``n`` and the flow ``F``."""
-    from vo.geometry import sample_by_flow
-
-    return (nonrigid_cur - sample_by_flow(nonrigid_ref, flow)).abs()
-
-
 def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: list[float],
                  rest_scales: list[float] = ()) -> list[dict]:
     from slam.config import load_config
@@ -42,6 +34,7 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
     from slam.errors import SlamError
     from slam.frame_view import frame_view
     from slam.training import relative_rect_transform
+    from vo.geometry import change_along_flow
     from vo.odometry import StereoOdometry
 
     cfg = load_config(None, ["logging.progress=false", *overrides])
@@ -51,7 +44,7 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
     setting: dict = {}
 
     def oracle(cur, ref, flow, w2, w3):
-        motion = pair_motion(setting["cur"], setting["ref"], flow)
+        motion = change_along_flow(setting["cur"], setting["ref"], flow)
         if setting["mask"] == "none":          # the learned w3D where it weighs a pixel
             sel = w3 > 0
             setting["stats"].append((w3[sel], motion[sel], setting["cur"][sel]))

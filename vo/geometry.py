@@ -88,6 +88,14 @@ def sample_by_flow(image: torch.Tensor, flow: torch.Tensor, mode: str = "bilinea
     return F.grid_sample(image, grid, mode=mode, padding_mode="zeros", align_corners=True)
 
 
+def change_along_flow(cur: torch.Tensor, ref: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+    """``|cur(x) - ref(x + F(x))|``: how much a per-pixel quantity changed between two views along
+    the flow ``F`` (current -> reference), e.g. the synthetic tissue's non-rigid displacement (mm):
+    how far the tissue seen at ``x`` moved between the frames. ``cur``, ``ref``: ``(B, C, H, W)``;
+    ``flow``: ``(B, 2, H, W)``; zero is sampled outside the reference."""
+    return (cur - sample_by_flow(ref, flow)).abs()
+
+
 def lands_inside(flow: torch.Tensor, target: torch.Tensor | None = None) -> torch.Tensor:
     """``(B, 1, H, W)`` bool: where ``x + flow(x)`` lies inside the ``H x W`` image (pixel centres);
     ``target``: ``pixel_grid + flow`` if already computed."""
