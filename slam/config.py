@@ -290,6 +290,8 @@ def validate(config: SlamConfig) -> None:
         (0 <= config.tracking.refine_passes <= 5, "tracking.refine_passes must be in 0..5"),
         (config.tracking.keyframe_gap >= 1, "tracking.keyframe_gap must be >= 1 (1 = every frame against the previous one)"),
         (config.weights.w2d >= 0 and config.weights.w3d >= 0, "weights.w2d/w3d must be >= 0"),
+        (0.0 < config.depth.temporal_gain <= 1.0, "depth.temporal_gain must be in (0, 1] (1 = off)"),
+        (config.depth.temporal_gate_mm > 0, "depth.temporal_gate_mm must be > 0"),
     ]
     for ok, message in checks:
         if not ok:

@@ -354,8 +354,12 @@ def _cache_key(cfg: TrainConfig, path: Path) -> str:
     if cfg.data.reference == "frame":   # (keys written before model references existed stay valid)
         for name in ("reference", "min_model_coverage", "fuse_exposure"):
             data.pop(name)
+    depth = asdict(cfg.depth)
+    if cfg.depth.temporal_gain >= 1.0:     # (keys written before the temporal filter existed stay valid)
+        for name in ("temporal_gain", "temporal_gate_mm"):
+            depth.pop(name)
     relevant = {"seq": str(path.resolve()), "data": data, "corr": asdict(cfg.correspondence),
-                "depth": asdict(cfg.depth), "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 2,
+                "depth": depth, "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 2,
                 "inputs": cfg.inputs}
     if cfg.data.reference == "model" or uses_map_depth(cfg.inputs):
         relevant["map"] = asdict(cfg.map)
@@ -382,10 +386,24 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
     dmax = cfg.depth.max_depth_mm
     H, W = dataset.camera.height, dataset.camera.width
     views: dict[int, object] = {}
+    last_filtered: list = [-1, None]    # with depth.temporal_gain < 1: the last frame filtered, its view
 
     def view(k):
         if k not in views:
-            views[k] = frame_view(odo, dataset.frame(k), path)   # depth.source: stereo or the generator's
+            if cfg.depth.temporal_gain < 1.0:
+                # each frame filtered against the one before it, as tracking with every frame does
+                m, prev = last_filtered
+                if k <= m:
+                    raise AssertionError(f"{path}: frame {k} asked for after frame {m} (pairs are sorted)")
+                for n in range(m + 1, k + 1):
+                    v = frame_view(odo, dataset.frame(n), path)
+                    if prev is not None:
+                        flow, flow_ok = odo._correspondences(v, prev, None, 0.0)
+                        odo.filter_depth(v, prev, flow, flow_ok)
+                    views[n] = prev = v
+                last_filtered[:] = [k, prev]
+            else:
+                views[k] = frame_view(odo, dataset.frame(k), path)   # depth.source: stereo or the generator's
         return views[k]
 
     # model references, or frame references that layout-4 networks compare with the map

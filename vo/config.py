@@ -69,12 +69,25 @@ class DepthConfig:
         min_disparity_px: smaller disparities are invalid.
         source: ``stereo`` (depth from the stereo parallax flow) or ``groundtruth`` (the synthetic
             generator's exact depth: the error budget's switch).
+        temporal_gain: < 1: each frame's depth is filtered along the temporal flow against its
+            reference frame's (already filtered) depth, ``d = d_ref(x + F) + gain (d_stereo -
+            d_ref(x + F))`` (:func:`vo.depth.filter_depth_along_flow`), so that the stereo error,
+            which is new in every frame, no longer dominates the 3D residual between two frames.
+            The filter needs no pose: a point's depth lags its stereo depth by the same amount in
+            both frames while the camera's motion is steady, and that common lag cancels in the
+            3D residual. 1 = off (each frame's own stereo depth, the paper's). README, "Temporal
+            depth filter".
+        temporal_gate_mm: where the stereo depth differs from the filtered reference by more than
+            this (a disocclusion, the flow landing on another surface, fast motion in depth), the
+            pixel starts again from its own stereo depth.
     """
 
     min_depth_mm: float = 20.0
     max_depth_mm: float = 250.0
     min_disparity_px: float = 0.5
     source: str = "stereo"
+    temporal_gain: float = 1.0
+    temporal_gate_mm: float = 1.0
 
 
 @dataclass

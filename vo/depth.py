@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 
 from vo.config import DepthConfig
-from vo.geometry import sample_by_flow
+from vo.geometry import flow_grid, sample_by_flow, sample_valid_by_flow
 
 
 def depth_from_parallax(parallax: torch.Tensor, fx_baseline: float, config: DepthConfig,
@@ -61,3 +61,38 @@ def flow_consistency(forward: torch.Tensor, backward: torch.Tensor, threshold_px
 def vertical_parallax_ok(parallax: torch.Tensor, max_px: float) -> torch.Tensor:
     """``(B, 1, H, W)`` bool: the vertical stereo parallax is at most ``max_px`` (rectified views have none)."""
     return parallax[:, 1:2].abs() <= max_px
+
+
+def filter_depth_along_flow(depth: torch.Tensor, valid: torch.Tensor, ref_depth: torch.Tensor,
+                            ref_valid: torch.Tensor, flow: torch.Tensor, flow_ok: torch.Tensor | None,
+                            gain: float, gate_mm: float) -> torch.Tensor:
+    """A frame's stereo depth filtered along the temporal flow against its reference's depth.
+
+    Per pixel, ``d = p + gain (d_stereo - p)`` with ``p = d_ref(x + F(x))`` the reference's
+    (filtered) depth where the flow lands: an exponential filter that follows the tissue along
+    the flow, needs no pose, and keeps the stereo matcher's error, which is new in every frame,
+    out of the difference between two frames' depths.
+
+    Args:
+        depth: ``(B, 1, H, W)`` the frame's stereo depth, mm (0 where invalid).
+        valid: ``(B, 1, H, W)`` bool, the frame's valid depth.
+        ref_depth, ref_valid: the same of the reference frame.
+        flow: ``(B, 2, H, W)`` temporal flow frame -> reference (pixels).
+        flow_ok: ``(B, 1, H, W)`` bool flows that passed the forward-backward check, or None.
+        gain: weight of the new stereo depth in (0, 1]; 1 returns ``depth``.
+        gate_mm: where ``|d_stereo - p|`` exceeds this the pixel keeps its stereo depth.
+
+    Returns:
+        ``(B, 1, H, W)`` filtered depth, mm; 0 where ``valid`` is False (validity is unchanged).
+    """
+    if gain >= 1.0:
+        return depth
+    grid = flow_grid(flow)
+    predicted = sample_by_flow(ref_depth, flow, grid=grid)
+    # every bilinear neighbour must be valid: a mix with an invalid (0) depth is no prediction
+    use = valid & sample_valid_by_flow(ref_valid, flow, grid) & (predicted > 0)
+    if flow_ok is not None:
+        use = use & flow_ok
+    innovation = depth - predicted
+    use = use & (innovation.abs() <= gate_mm)
+    return torch.where(use, predicted + gain * innovation, depth)

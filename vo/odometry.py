@@ -19,7 +19,8 @@ from vo.camera import StereoCamera
 from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
 from vo.correspondence import make_flow_estimators
 from vo.correspondence.dis import DisFlow, to_gray_u8
-from vo.depth import depth_from_parallax, flow_consistency, parallax_from_depth, vertical_parallax_ok
+from vo.depth import (depth_from_parallax, filter_depth_along_flow, flow_consistency, parallax_from_depth,
+                      vertical_parallax_ok)
 from vo.geometry import backproject, flow_grid, lands_inside, pixel_grid, sample_by_flow, sample_valid_by_flow
 from vo.lie import rotation_angle_deg
 from vo.residuals import PoseProblem, residuals
@@ -65,6 +66,8 @@ class View:
         flow_ahead: the temporal flow of this view against an earlier real view, computed
             before it was needed (:meth:`StereoOdometry.flow_ahead`): a weak reference to that
             view, the flow and the forward-backward mask; taken once by the tracking that uses it.
+        stereo_depth: the view's own stereo depth once ``depth`` holds it filtered along the flow
+            (``depth.temporal_gain`` < 1, :meth:`StereoOdometry.filter_depth`), else None.
     """
 
     image: torch.Tensor
@@ -78,6 +81,7 @@ class View:
     flow_input: tuple[torch.Tensor, np.ndarray] | None = field(default=None, repr=False)
     model_depth: torch.Tensor | None = field(default=None, repr=False)
     flow_ahead: tuple[weakref.ref, torch.Tensor, torch.Tensor | None] | None = field(default=None, repr=False)
+    stereo_depth: torch.Tensor | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -348,6 +352,7 @@ class StereoOdometry:
         timings: dict = {}
         t0 = time.perf_counter()
         flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
+        self.filter_depth(cur, ref, flow, fb_ok)
         t1 = time.perf_counter()
         problem = self.build_problem(cur, ref, flow, fb_ok)
         target, valid, valid3, points_ref = problem
@@ -397,6 +402,20 @@ class StereoOdometry:
                            iterations=0 if result is None else result.iterations,
                            cost=float("nan") if result is None else float(result.cost[0]),
                            valid_pixels=n_valid, flow=flow, w2d=w2d, w3d=w3d, timings_ms=timings)
+
+    def filter_depth(self, cur: View, ref: View, flow: torch.Tensor, flow_ok: torch.Tensor | None) -> None:
+        """With ``depth.temporal_gain`` < 1, replace ``cur.depth`` by its stereo depth filtered along
+        ``flow`` (``cur -> ref``) against ``ref``'s depth (:func:`vo.depth.filter_depth_along_flow`).
+        Only between two camera frames: a model view's depth is fused already, and a real frame
+        tracked against one keeps its own stereo depth. Tracking ``cur`` again filters its stereo
+        depth again (kept in ``cur.stereo_depth``), never the filtered one."""
+        dcfg = self.config.depth
+        if dcfg.temporal_gain >= 1.0 or cur.rendered or ref.rendered:
+            return
+        if cur.stereo_depth is None:
+            cur.stereo_depth = cur.depth
+        cur.depth = filter_depth_along_flow(cur.stereo_depth, cur.valid, ref.depth, ref.valid, flow, flow_ok,
+                                            dcfg.temporal_gain, dcfg.temporal_gate_mm)
 
     def _flow_input(self, view: View, against: View) -> tuple[torch.Tensor, np.ndarray]:
         """``view``'s image and grey image for a temporal flow to ``against``: a real frame's
