@@ -108,3 +108,33 @@ def test_filter_config_range(tmp_path, capsys):
 
     assert main(["run", str(tmp_path), "--set", "depth.temporal_gain=0"]) != 0
     assert "depth.temporal_gain must be in (0, 1]" in capsys.readouterr().err
+
+
+def test_warning_when_the_networks_saw_another_filter(caplog):
+    """Networks trained on depth filtered with one gain, tracking with another: one warning naming both."""
+    import logging
+
+    from vo.odometry import warn_depth_filter_mismatch
+
+    meta = {"train_config": {"depth": {"temporal_gain": 0.05}}}
+    with caplog.at_level(logging.WARNING):
+        warn_depth_filter_mismatch(meta, 0.05, "")
+        warn_depth_filter_mismatch({}, 1.0, "x.pt")          # checkpoints from before the filter: unfiltered
+        assert not caplog.records
+        warn_depth_filter_mismatch(meta, 1.0, "x.pt")
+    assert len(caplog.records) == 1
+    assert "x.pt" in caplog.text and "temporal_gain=0.05" in caplog.text and "uses 1" in caplog.text
+
+
+def test_filtered_depth_selects_the_packaged_networks_trained_on_it():
+    """With the filter on and no checkpoint named, tracking loads the packaged networks trained on
+    filtered depth (their config says so); without it, the stereo-depth ones."""
+    from slam.config import load_config
+    from vo.camera import StereoCamera
+    from vo.odometry import StereoOdometry
+
+    cam = StereoCamera(K=np.array([[200.0, 0, 79.5], [0, 200.0, 63.5], [0, 0, 1]]), baseline_mm=5.0, width=160, height=128)
+    for gain, expected in ((0.05, 0.05), (1.0, 1.0)):
+        cfg = load_config(None, [f"depth.temporal_gain={gain}"])
+        odo = StereoOdometry(cam, cfg.vo())
+        assert odo.weight_meta["train_config"]["depth"].get("temporal_gain", 1.0) == expected

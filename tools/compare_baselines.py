@@ -151,7 +151,7 @@ def learned_weights_available(overrides: list[str]) -> bool:
     cfg = load_config(None, list(overrides))
     if cfg.weights.mode != "learned":
         return True
-    path = Path(cfg.weights.checkpoint) if cfg.weights.checkpoint else default_checkpoint(cfg.weights.residuals)
+    path = Path(cfg.weights.checkpoint) if cfg.weights.checkpoint else default_checkpoint(cfg.weights.residuals, cfg.depth.temporal_gain < 1.0)
     return path.is_file()
 
 

@@ -2,6 +2,7 @@
 ``weights.w2d`` / ``weights.w3d`` come from here; w = 1 for both is an arbitrary balance).
 
     .venv/bin/python tools/sweep_constant_weights.py [--config configs/train.yaml] [--out runs/sweep]
+        [--set key=value ...]   (training-config overrides, e.g. depth.temporal_gain=0.1)
 
 For each ratio ``w3d / w2d`` (w2d = 1) it solves every training/validation pair's pose with
 constant weights and reports the mean L1 pose loss of eq. 7 and the mean translation (mm) and
@@ -47,8 +48,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", default="configs/train.yaml")
     ap.add_argument("--out", default="runs/sweep")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="training-config override")
     args = ap.parse_args()
-    cfg = load_train_config(args.config)
+    cfg = load_train_config(args.config, args.set)
     _, train_set, val = training_data(cfg)
     samples = train_set + val
     rows = []

@@ -155,7 +155,9 @@ class WeightsConfig:
         w2d, w3d: the constant weights; their defaults come from the sweep of the 2D/3D balance on
             the 1200 training pairs in ``tools/sweep_constant_weights.py`` (README, "Constant
             weights"): w3d/w2d = 0.01 gave the lowest pose error (w = 1 for both: 3.9x higher).
-        checkpoint: weight-network checkpoint; empty = the packaged one for ``residuals``.
+        checkpoint: weight-network checkpoint; empty = the packaged one for ``residuals`` (with
+            ``depth.temporal_gain`` < 1 the packaged ``weights_{residuals}_filtered.pt``, trained on
+            filtered depth, where there is one).
         checkpoint_model: the checkpoint used when the reference is a view rendered from the map
             (frame2model); empty = the packaged ``weights_{residuals}_model.pt`` when
             ``checkpoint`` is empty and that file exists, else the networks of ``checkpoint``

@@ -7,6 +7,7 @@ temporal flow, residuals, weight maps, NLLS. ``register`` is the frame2frame loo
 """
 from __future__ import annotations
 
+import logging
 import time
 import weakref
 from dataclasses import dataclass, field
@@ -27,6 +28,8 @@ from vo.residuals import PoseProblem, residuals
 from vo.solver import solve_pose
 from vo.weights import (WeightInputs, WeightNetworks, constant_weights, load_weight_networks, rigid_prior_flow,
                         model_reference_checkpoint, uses_map_depth, uses_rigid_flow)
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -146,11 +149,13 @@ class StereoOdometry:
         if config.weights.mode == "learned":
             wcfg = config.weights
             if weight_networks is None:
-                weight_networks, self.weight_meta = load_weight_networks(wcfg.checkpoint, wcfg.residuals, device)
+                weight_networks, self.weight_meta = load_weight_networks(
+                    wcfg.checkpoint, wcfg.residuals, device, filtered_depth=config.depth.temporal_gain < 1.0)
                 model_path = model_reference_checkpoint(wcfg.checkpoint, wcfg.checkpoint_model, wcfg.residuals)
                 if model_path is not None:
                     self.model_weight_networks = load_weight_networks(model_path, wcfg.residuals, device)[0].to(self.device).eval()
             self.weight_networks = weight_networks.to(self.device).eval()
+            warn_depth_filter_mismatch(self.weight_meta, config.depth.temporal_gain, wcfg.checkpoint)
         elif config.weights.mode != "constant":
             raise ValueError(f"unknown weights.mode '{config.weights.mode}' (learned, constant)")
         self._ahead_flow_estimator = None   # the look-ahead thread's own temporal flow (flow_ahead)
@@ -512,6 +517,16 @@ class StereoOdometry:
             self.previous_relative = result.relative
             self.reference = view
         return result
+
+
+def warn_depth_filter_mismatch(meta: dict, temporal_gain: float, checkpoint: str) -> None:
+    """Log a warning when the weight networks were trained on depth filtered with another
+    ``depth.temporal_gain`` than tracking uses (their weights then suit another depth noise)."""
+    trained = (meta.get("train_config") or {}).get("depth", {}).get("temporal_gain", 1.0)
+    if abs(float(trained) - float(temporal_gain)) > 1e-9:
+        log.warning("the weight networks (%s) were trained with depth.temporal_gain=%g, tracking uses %g: "
+                    "their 3D weights suit another depth noise (README, \"Temporal depth filter\")",
+                    checkpoint or "packaged", float(trained), float(temporal_gain))
 
 
 def cauchy_weights_3d(prob: PoseProblem, T: torch.Tensor, max_depth_mm: float, scale_mm: float) -> torch.Tensor:

@@ -285,8 +285,13 @@ def constant_weights(valid: torch.Tensor, w2d: float, w3d: float, residuals: str
     return w2, w3
 
 
-def default_checkpoint(residuals: str) -> Path:
-    """The packaged checkpoint for a residual mode."""
+def default_checkpoint(residuals: str, filtered_depth: bool = False) -> Path:
+    """The packaged checkpoint for a residual mode; with ``filtered_depth`` (``depth.temporal_gain``
+    < 1) the one trained on filtered depth, ``weights_{residuals}_filtered.pt``, where there is one."""
+    if filtered_depth:
+        filtered = CHECKPOINT_DIR / f"weights_{residuals}_filtered.pt"
+        if filtered.is_file():
+            return filtered
     return CHECKPOINT_DIR / f"weights_{residuals}.pt"
 
 
@@ -304,17 +309,19 @@ class MissingWeightsError(ValueError):
     """``weights.mode: learned`` without a usable checkpoint."""
 
 
-def load_weight_networks(path: str | Path | None, residuals: str, device: str = "cpu") -> tuple[WeightNetworks, dict]:
+def load_weight_networks(path: str | Path | None, residuals: str, device: str = "cpu",
+                         filtered_depth: bool = False) -> tuple[WeightNetworks, dict]:
     """Load weight networks from a checkpoint written by ``slam train``.
 
     Args:
-        path: checkpoint file; None/empty = the packaged one for ``residuals``.
+        path: checkpoint file; None/empty = the packaged one for ``residuals`` (and
+            ``filtered_depth``, see :func:`default_checkpoint`).
 
     Returns:
         the networks in eval mode and the checkpoint's metadata (training config, image size,
         correspondence backend, maximum depth).
     """
-    path = Path(path) if path else default_checkpoint(residuals)
+    path = Path(path) if path else default_checkpoint(residuals, filtered_depth)
     if not path.is_file():
         raise MissingWeightsError(
             f"{path}: weight-network checkpoint not found (train one with `slam train`, or run with --weights constant)"
