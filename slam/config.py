@@ -292,6 +292,7 @@ def validate(config: SlamConfig) -> None:
         (config.weights.w2d >= 0 and config.weights.w3d >= 0, "weights.w2d/w3d must be >= 0"),
         (0.0 < config.depth.temporal_gain <= 1.0, "depth.temporal_gain must be in (0, 1] (1 = off)"),
         (config.depth.temporal_gate_mm > 0, "depth.temporal_gate_mm must be > 0"),
+        (config.depth.temporal_still_mm >= 0, "depth.temporal_still_mm must be >= 0 (0 = filter every frame)"),
     ]
     for ok, message in checks:
         if not ok:

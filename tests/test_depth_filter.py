@@ -138,3 +138,36 @@ def test_filtered_depth_selects_the_packaged_networks_trained_on_it():
         cfg = load_config(None, [f"depth.temporal_gain={gain}"])
         odo = StereoOdometry(cam, cfg.vo())
         assert odo.weight_meta["train_config"]["depth"].get("temporal_gain", 1.0) == expected
+
+
+@pytest.mark.parametrize("scenario, expected", [("breathing", [True] * 7), ("rigid", [True] + [False] * 6)])
+def test_filter_only_while_the_camera_is_still(synth_dir, tmp_path, scenario, expected):
+    """``depth.temporal_still_mm``: a still camera's frames are filtered; a moving camera's first
+    tracked frame is (nothing has moved yet), the later ones keep their stereo depth and are weighed
+    by the networks trained on stereo depth."""
+    from slam.config import load_config
+    from slam.datasets import open_dataset
+    from slam.pipeline import Pipeline
+
+    data = synth_dir(scenario, 8, (160, 128))
+    cfg = load_config(None, ["logging.progress=false", "depth.temporal_gain=0.05", "depth.temporal_still_mm=0.1"])
+    pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / "run")
+    odo = pipe.odometry
+    assert odo.unfiltered_weight_networks is not None
+    filtered, nets = [], []
+    track, weights = odo.track, odo._weights
+
+    def spy_weights(cur, *args, **kwargs):
+        nets.append(odo.unfiltered_weight_networks if cur.stereo_depth is None else odo.weight_networks)
+        return weights(cur, *args, **kwargs)
+
+    def spy_track(cur, *args, **kwargs):
+        result = track(cur, *args, **kwargs)
+        filtered.append(cur.stereo_depth is not None)
+        return result
+
+    odo.track, odo._weights = spy_track, spy_weights
+    result = pipe.run(progress=False)
+    assert filtered == expected
+    assert [n is odo.weight_networks for n in nets] == expected
+    assert not any(r.failed for r in result.records)

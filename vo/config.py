@@ -80,6 +80,11 @@ class DepthConfig:
         temporal_gate_mm: where the stereo depth differs from the filtered reference by more than
             this (a disocclusion, the flow landing on another surface, fast motion in depth), the
             pixel starts again from its own stereo depth.
+        temporal_still_mm: > 0: filter only while the camera is still, i.e. the last tracked motion
+            moved it less than this (mm per frame); the frames of a moving camera keep their stereo
+            depth and are weighed by the networks trained on it (the packaged ones: when no
+            ``weights.checkpoint`` is named). Where the camera's motion in depth changes, the
+            filter's lag changes with it and biases the 3D residual. 0: filter every frame.
     """
 
     min_depth_mm: float = 20.0
@@ -88,6 +93,7 @@ class DepthConfig:
     source: str = "stereo"
     temporal_gain: float = 1.0
     temporal_gate_mm: float = 1.0
+    temporal_still_mm: float = 0.0
 
 
 @dataclass

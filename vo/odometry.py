@@ -145,6 +145,7 @@ class StereoOdometry:
         self.temporal_flow, self.stereo_flow = make_flow_estimators(config.correspondence, device)
         self.weight_networks = None
         self.model_weight_networks = None   # against views rendered from the map (None: the same)
+        self.unfiltered_weight_networks = None  # for frames left unfiltered (depth.temporal_still_mm; None: the same)
         self.weight_meta: dict = {}
         if config.weights.mode == "learned":
             wcfg = config.weights
@@ -154,6 +155,8 @@ class StereoOdometry:
                 model_path = model_reference_checkpoint(wcfg.checkpoint, wcfg.checkpoint_model, wcfg.residuals)
                 if model_path is not None:
                     self.model_weight_networks = load_weight_networks(model_path, wcfg.residuals, device)[0].to(self.device).eval()
+                if config.depth.temporal_gain < 1.0 and config.depth.temporal_still_mm > 0 and not wcfg.checkpoint:
+                    self.unfiltered_weight_networks = load_weight_networks("", wcfg.residuals, device)[0].to(self.device).eval()
             self.weight_networks = weight_networks.to(self.device).eval()
             warn_depth_filter_mismatch(self.weight_meta, config.depth.temporal_gain, wcfg.checkpoint)
         elif config.weights.mode != "constant":
@@ -271,6 +274,8 @@ class StereoOdometry:
             return constant_weights(valid, wcfg.w2d, wcfg.w3d, wcfg.residuals)
         networks = self.model_weight_networks if model_reference and self.model_weight_networks is not None \
             else self.weight_networks
+        if not model_reference and cur.stereo_depth is None and self.unfiltered_weight_networks is not None:
+            networks = self.unfiltered_weight_networks      # a moving camera's frame keeps its stereo depth
         dmax = self.config.depth.max_depth_mm
         rigid = self.rigid_flow(cur, flow, problem) if uses_rigid_flow(networks.inputs) else None
         model_depth = None
@@ -333,7 +338,7 @@ class StereoOdometry:
         return target, valid, valid3, points_ref
 
     def track(self, cur: View, ref: View, flow_ref: View | None = None, T_init: np.ndarray | None = None,
-              chain_gain: float = 0.0, model_reference: bool = False) -> TrackResult:
+              chain_gain: float = 0.0, model_reference: bool = False, camera_still: bool = True) -> TrackResult:
         """Estimate the transform from ``cur``'s camera to ``ref``'s camera.
 
         Args:
@@ -353,11 +358,14 @@ class StereoOdometry:
             model_reference: ``ref`` is a view rendered from the map: the weights come from the
                 model-reference networks (``weights.checkpoint_model``) and the robust 3D step uses
                 ``solver.robust_3d_model_mm`` instead of ``solver.robust_3d_mm``.
+            camera_still: the camera moved less than ``depth.temporal_still_mm`` in the last
+                tracked frame (the caller knows): with that setting, only then is ``cur``'s depth
+                filtered (:meth:`filter_depth`).
         """
         timings: dict = {}
         t0 = time.perf_counter()
         flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
-        self.filter_depth(cur, ref, flow, fb_ok)
+        self.filter_depth(cur, ref, flow, fb_ok, camera_still or self.config.depth.temporal_still_mm <= 0)
         t1 = time.perf_counter()
         problem = self.build_problem(cur, ref, flow, fb_ok)
         target, valid, valid3, points_ref = problem
@@ -408,17 +416,20 @@ class StereoOdometry:
                            cost=float("nan") if result is None else float(result.cost[0]),
                            valid_pixels=n_valid, flow=flow, w2d=w2d, w3d=w3d, timings_ms=timings)
 
-    def filter_depth(self, cur: View, ref: View, flow: torch.Tensor, flow_ok: torch.Tensor | None) -> None:
-        """With ``depth.temporal_gain`` < 1, replace ``cur.depth`` by its stereo depth filtered along
-        ``flow`` (``cur -> ref``) against ``ref``'s depth (:func:`vo.depth.filter_depth_along_flow`).
-        Only between two camera frames: a model view's depth is fused already, and a real frame
-        tracked against one keeps its own stereo depth. Tracking ``cur`` again filters its stereo
-        depth again (kept in ``cur.stereo_depth``), never the filtered one."""
+    def filter_depth(self, cur: View, ref: View, flow: torch.Tensor, flow_ok: torch.Tensor | None,
+                     filter_on: bool = True) -> None:
+        """With ``depth.temporal_gain`` < 1 and ``filter_on``, replace ``cur.depth`` by its stereo
+        depth filtered along ``flow`` (``cur -> ref``) against ``ref``'s depth
+        (:func:`vo.depth.filter_depth_along_flow`) and keep the stereo depth in
+        ``cur.stereo_depth`` (None: ``cur.depth`` is the stereo depth). Only between two camera
+        frames: a model view's depth is fused already, and a real frame tracked against one keeps
+        its own stereo depth. Tracking ``cur`` again starts from its stereo depth, never the filtered one."""
         dcfg = self.config.depth
-        if dcfg.temporal_gain >= 1.0 or cur.rendered or ref.rendered:
+        if cur.stereo_depth is not None:
+            cur.depth, cur.stereo_depth = cur.stereo_depth, None
+        if dcfg.temporal_gain >= 1.0 or cur.rendered or ref.rendered or not filter_on:
             return
-        if cur.stereo_depth is None:
-            cur.stereo_depth = cur.depth
+        cur.stereo_depth = cur.depth
         cur.depth = filter_depth_along_flow(cur.stereo_depth, cur.valid, ref.depth, ref.valid, flow, flow_ok,
                                             dcfg.temporal_gain, dcfg.temporal_gate_mm)
 
