@@ -390,11 +390,10 @@ class Pipeline:
             ref, ref_pose, kind = self._keyframe[1], self._keyframe[2], "keyframe"
             if T_init is not None:      # the motion since the keyframe, continued by one frame's
                 T_init = np.linalg.inv(ref_pose) @ pose_rect @ self.velocity
-        still_mm = self.config.depth.temporal_still_mm
         track = self.odometry.track(view, ref, flow_ref, T_init=T_init,
                                     chain_gain=self.chain_gain if kind == "model" else 0.0,
                                     model_reference=kind == "model",
-                                    camera_still=still_mm <= 0 or float(np.linalg.norm(self.velocity[:3, 3])) < still_mm)
+                                    camera_still=self.odometry.camera_still(self.velocity))
         for stage, ms in track.timings_ms.items():
             self._time(stage, ms)
         if track.failed:

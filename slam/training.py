@@ -355,6 +355,7 @@ def _cache_key(cfg: TrainConfig, path: Path) -> str:
         for name in ("reference", "min_model_coverage", "fuse_exposure"):
             data.pop(name)
     depth = asdict(cfg.depth)
+    depth.pop("temporal_still_mm")      # the pair cache filters every frame (tracking decides per frame)
     if cfg.depth.temporal_gain >= 1.0:     # (keys written before the temporal filter existed stay valid)
         for name in ("temporal_gain", "temporal_gate_mm"):
             depth.pop(name)

@@ -172,3 +172,15 @@ def test_filter_only_while_the_camera_is_still(synth_dir, tmp_path, scenario, ex
     assert filtered == expected
     assert [n is odo.weight_networks for n in nets] == expected
     assert not any(r.failed for r in result.records)
+
+
+def test_pair_cache_key_ignores_the_filter_settings_that_do_not_change_the_pairs(tmp_path):
+    """Off (gain 1), the filter's settings leave the key as it was before the filter existed (old
+    caches stay valid); ``temporal_still_mm`` never enters it (the cache filters every frame)."""
+    from slam.training import _cache_key, load_train_config
+
+    data, path = _rigid_pairs_config(tmp_path, "rigid")
+    key = lambda *o: _cache_key(load_train_config(path, list(o)), data)   # noqa: E731
+    assert key() == key("depth.temporal_gate_mm=2", "depth.temporal_still_mm=0.1")
+    assert key("depth.temporal_gain=0.05") == key("depth.temporal_gain=0.05", "depth.temporal_still_mm=0.1")
+    assert key("depth.temporal_gain=0.05") != key() != key("depth.temporal_gain=0.1")

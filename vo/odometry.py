@@ -358,14 +358,14 @@ class StereoOdometry:
             model_reference: ``ref`` is a view rendered from the map: the weights come from the
                 model-reference networks (``weights.checkpoint_model``) and the robust 3D step uses
                 ``solver.robust_3d_model_mm`` instead of ``solver.robust_3d_mm``.
-            camera_still: the camera moved less than ``depth.temporal_still_mm`` in the last
-                tracked frame (the caller knows): with that setting, only then is ``cur``'s depth
-                filtered (:meth:`filter_depth`).
+            camera_still: the last tracked motion moved the camera less than
+                ``depth.temporal_still_mm`` (:meth:`camera_still`; the caller keeps the motion):
+                only then is ``cur``'s depth filtered (:meth:`filter_depth`).
         """
         timings: dict = {}
         t0 = time.perf_counter()
         flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
-        self.filter_depth(cur, ref, flow, fb_ok, camera_still or self.config.depth.temporal_still_mm <= 0)
+        self.filter_depth(cur, ref, flow, fb_ok, camera_still)
         t1 = time.perf_counter()
         problem = self.build_problem(cur, ref, flow, fb_ok)
         target, valid, valid3, points_ref = problem
@@ -415,6 +415,12 @@ class StereoOdometry:
                            iterations=0 if result is None else result.iterations,
                            cost=float("nan") if result is None else float(result.cost[0]),
                            valid_pixels=n_valid, flow=flow, w2d=w2d, w3d=w3d, timings_ms=timings)
+
+    def camera_still(self, last_relative: np.ndarray) -> bool:
+        """Whether the last tracked motion, ``(4, 4)`` mm, moved the camera less than
+        ``depth.temporal_still_mm`` (always True when that is 0): :meth:`track`'s ``camera_still``."""
+        still_mm = self.config.depth.temporal_still_mm
+        return still_mm <= 0 or float(np.linalg.norm(last_relative[:3, 3])) < still_mm
 
     def filter_depth(self, cur: View, ref: View, flow: torch.Tensor, flow_ok: torch.Tensor | None,
                      filter_on: bool = True) -> None:
@@ -521,7 +527,7 @@ class StereoOdometry:
             self.reference = view
             return None
         T_init = self.previous_relative if self.config.solver.init == "constant_velocity" else None
-        result = self.track(view, self.reference, T_init=T_init)
+        result = self.track(view, self.reference, T_init=T_init, camera_still=self.camera_still(self.previous_relative))
         result.timings_ms = {**timings, **result.timings_ms}
         if not result.failed:
             self.pose = self.pose @ result.relative
