@@ -127,7 +127,8 @@ def test_warning_when_the_networks_saw_another_filter(caplog):
     assert "x.pt" in caplog.text and "temporal_gain=0.05" in caplog.text and "uses 1" in caplog.text
 
 
-def test_filtered_depth_selects_the_packaged_networks_trained_on_it():
+@pytest.mark.parametrize("residuals", ["2d3d", "2d", "3d"])
+def test_filtered_depth_selects_the_packaged_networks_trained_on_it(residuals):
     """With the filter on and no checkpoint named, tracking loads the packaged networks trained on
     filtered depth (their config says so); without it, the stereo-depth ones."""
     from slam.config import load_config
@@ -136,8 +137,9 @@ def test_filtered_depth_selects_the_packaged_networks_trained_on_it():
 
     cam = StereoCamera(K=np.array([[200.0, 0, 79.5], [0, 200.0, 63.5], [0, 0, 1]]), baseline_mm=5.0, width=160, height=128)
     for gain, expected in ((0.05, 0.05), (1.0, 1.0)):
-        cfg = load_config(None, [f"depth.temporal_gain={gain}"])
+        cfg = load_config(None, [f"depth.temporal_gain={gain}", f"weights.residuals={residuals}"])
         odo = StereoOdometry(cam, cfg.vo())
+        assert odo.weight_meta["residuals"] == residuals
         assert odo.weight_meta["train_config"]["depth"].get("temporal_gain", 1.0) == expected
 
 
