@@ -40,7 +40,7 @@ from vo.lie import se3_exp, se3_log
 from vo.odometry import StereoOdometry, View, VOConfig
 from vo.residuals import PoseProblem
 from vo.weights import (IN_CHANNELS, INPUT_VERSION, WeightInputs, WeightNetworks, load_weight_networks,
-                        uses_map_depth, uses_rigid_flow,
+                        uses_map_depth, uses_motion_memory, uses_rigid_flow,
                         network_inputs, sample_weights)
 
 log = logging.getLogger("slam.train")
@@ -387,12 +387,14 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
     dmax = cfg.depth.max_depth_mm
     H, W = dataset.camera.height, dataset.camera.width
     views: dict[int, object] = {}
-    last_filtered: list = [-1, None]    # with depth.temporal_gain < 1: the last frame filtered, its view
+    last_filtered: list = [-1, None]    # frames made in order (filter, memory): the last one, its view
+    memory = uses_motion_memory(cfg.inputs)
 
     def view(k):
         if k not in views:
-            if cfg.depth.temporal_gain < 1.0:
-                # each frame filtered against the one before it, as tracking with every frame does
+            if cfg.depth.temporal_gain < 1.0 or memory:
+                # each frame filtered against the one before it, and its motion memory carried on from
+                # that one at the true motion, as tracking with every frame does
                 m, prev = last_filtered
                 if k <= m:
                     raise AssertionError(f"{path}: frame {k} asked for after frame {m} (pairs are sorted)")
@@ -401,6 +403,10 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
                     if prev is not None:
                         flow, flow_ok = odo._correspondences(v, prev, None, 0.0)
                         odo.filter_depth(v, prev, flow, flow_ok)
+                        if memory:
+                            T = torch.as_tensor(relative_rect_transform(dataset.gt_poses, dataset.R1, n - 1, n))
+                            T[:3, 3] /= dmax
+                            odo.remember_motion(v, prev, flow, odo.build_problem(v, prev, flow, flow_ok), T[None])
                     views[n] = prev = v
                 last_filtered[:] = [k, prev]
             else:
@@ -429,7 +435,8 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
         rigid = odo.rigid_flow(cur, flow, problem) if uses_rigid_flow(cfg.inputs) else None  # as tracking computes it
         _, x3 = network_inputs(WeightInputs(cur.image, cur.depth / dmax, flow, cur.parallax,
                                             ref.image, ref.depth / dmax, ref.parallax, valid, rigid,
-                                            None if model_depth is None else model_depth / dmax),
+                                            None if model_depth is None else model_depth / dmax,
+                                            ref.motion_memory if memory else None),
                                cfg.downscale, cfg.inputs)
         idx = valid.flatten().nonzero().squeeze(1)
         n = cfg.data.pixels_per_pair

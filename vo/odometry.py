@@ -26,8 +26,9 @@ from vo.geometry import backproject, flow_grid, lands_inside, pixel_grid, sample
 from vo.lie import rotation_angle_deg
 from vo.residuals import PoseProblem, residuals
 from vo.solver import solve_pose
+from vo.motion_memory import relative_residual, update_memory
 from vo.weights import (WeightInputs, WeightNetworks, constant_weights, load_weight_networks, rigid_prior_flow,
-                        model_reference_checkpoint, uses_map_depth, uses_rigid_flow)
+                        model_reference_checkpoint, uses_map_depth, uses_motion_memory, uses_rigid_flow)
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +72,9 @@ class View:
             view, the flow and the forward-backward mask; taken once by the tracking that uses it.
         stereo_depth: the view's own stereo depth once ``depth`` holds it filtered along the flow
             (``depth.temporal_gain`` < 1, :meth:`StereoOdometry.filter_depth`), else None.
+        motion_memory: ``(1, 4, H, W)`` where the tissue seen in this view has been moving
+            (:mod:`vo.motion_memory`), set when it was tracked against a camera frame for
+            layout-5 weight networks (:meth:`StereoOdometry.remember_motion`), else None.
     """
 
     image: torch.Tensor
@@ -85,6 +89,7 @@ class View:
     model_depth: torch.Tensor | None = field(default=None, repr=False)
     flow_ahead: tuple[weakref.ref, torch.Tensor, torch.Tensor | None] | None = field(default=None, repr=False)
     stereo_depth: torch.Tensor | None = field(default=None, repr=False)
+    motion_memory: torch.Tensor | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -283,9 +288,27 @@ class StereoOdometry:
             model_depth = torch.zeros_like(ref.depth) if ref.model_depth is None else ref.model_depth / dmax
         inp = WeightInputs(image_cur=cur.image, depth_cur=cur.depth / dmax, flow=flow, parallax_cur=cur.parallax,
                            image_ref=ref.image, depth_ref=ref.depth / dmax, parallax_ref=ref.parallax, valid=valid,
-                           rigid_flow=rigid, model_depth_ref=model_depth)
+                           rigid_flow=rigid, model_depth_ref=model_depth,
+                           motion_memory_ref=ref.motion_memory if uses_motion_memory(networks.inputs) else None)
         with torch.inference_mode():
             return networks(inp)
+
+    def keeps_motion_memory(self) -> bool:
+        """Some frame-reference weight networks take the reference's motion memory (layout 5)."""
+        return any(n is not None and uses_motion_memory(n.inputs)
+                   for n in (self.weight_networks, self.unfiltered_weight_networks))
+
+    def remember_motion(self, cur: View, ref: View, flow: torch.Tensor, problem: tuple, T: torch.Tensor) -> None:
+        """Set ``cur.motion_memory``: ``ref``'s carried along ``flow`` plus the 3D residual of every
+        pixel at the pose ``T`` ``(1, 4, 4)`` (current -> reference, translation normalised by
+        ``depth.max_depth_mm``); ``problem`` is :meth:`build_problem`'s. Between camera frames only
+        (a model view's depth is the map's, not the tissue as this frame saw it)."""
+        if cur.rendered or ref.rendered:
+            return
+        _, _, valid3, points_ref = problem
+        points_cur = backproject(cur.depth / self.config.depth.max_depth_mm, self.K)
+        residual = relative_residual(points_cur, points_ref, T, valid3)
+        cur.motion_memory = update_memory(ref.motion_memory, flow, residual, valid3)
 
     def needs_map_depth(self) -> bool:
         """The frame-reference weight networks take the map's depth at the reference's pose
@@ -410,6 +433,8 @@ class StereoOdometry:
                 else:
                     relative = T.numpy().copy()
                     relative[:3, 3] *= dmax
+                    if not model_reference and self.keeps_motion_memory():
+                        self.remember_motion(cur, ref, flow, problem, result.T)
         timings.update(flow=(t1 - t0) * 1000.0, weights=(t2 - t1) * 1000.0, solve=(t3 - t2) * 1000.0)
         return TrackResult(relative=relative, failed=failed, reason=reason,
                            iterations=0 if result is None else result.iterations,

@@ -26,6 +26,11 @@ model_depth_ref``). A map fused over many frames holds the tissue's mean shape, 
 the whole breathing or pushing displacement rather than one frame's share of it, and it stays
 visible when the camera moves. 15 and 22 channels. (Trained with the shipped recipe it tracked worse
 than version 2: README, "Input layout 4".)
+Layout version 5 (stop 28) adds instead, after the sub-pixel flow, the reference's motion memory
+(:mod:`vo.motion_memory`: the 3D residual at the solved poses averaged over the last second along
+the flow, ``asinh(|mean| / 1e-4)`` relative to the depth, and how much history it holds; 2, on the reference grid, warped
+like the other reference maps; ``WeightInputs.motion_memory_ref``): where the tissue has been
+moving, which one pair's depth noise hides. 15 and 22 channels.
 Flows are scaled by ``20 / W`` (a flow of 5 % of the width is 1); the vertical parallax by ``W0 / (2 W)``
 with ``W0 = 640`` (2 px at the paper's resolution is 1).
 """
@@ -40,9 +45,10 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from vo.geometry import pixel_grid, project, sample_by_flow
+from vo.motion_memory import memory_features
 
 INPUT_VERSION = 2
-IN_CHANNELS = {1: (11, 17), 2: (13, 20), 3: (15, 22), 4: (15, 22)}  # input layout version -> (w2D, w3D) channels
+IN_CHANNELS = {1: (11, 17), 2: (13, 20), 3: (15, 22), 4: (15, 22), 5: (15, 22)}  # input layout version -> (w2D, w3D) channels
 IN_CHANNELS_2D, IN_CHANNELS_3D = IN_CHANNELS[INPUT_VERSION]
 FLOW_FINE_PX = 0.5  # sub-pixel flow scale of the version-2 inputs
 DEPTH_CHANGE_REL = 0.003  # relative depth change scale (0.2 mm at 70 mm, the stereo noise at 1/8)
@@ -59,6 +65,11 @@ def uses_map_depth(version: int) -> bool:
     return version == 4
 
 
+def uses_motion_memory(version: int) -> bool:
+    """Layout ``version`` takes the reference's motion memory (:mod:`vo.motion_memory`)."""
+    return version == 5
+
+
 @dataclass
 class WeightInputs:
     """Full-resolution inputs of the weight networks (batch ``B``).
@@ -73,6 +84,8 @@ class WeightInputs:
             (pixels; layout version 3 only, see :func:`rigid_prior_flow`).
         model_depth_ref: ``(B, 1, H, W)`` the map's normalised depth rendered at the reference's
             pose, 0 where the map does not cover it (layout version 4 only; all zero: no map yet).
+        motion_memory_ref: ``(B, 4, H, W)`` the reference's motion memory
+            (:func:`vo.motion_memory.update_memory`; layout version 5 only; None: no history).
     """
 
     image_cur: torch.Tensor
@@ -85,6 +98,7 @@ class WeightInputs:
     valid: torch.Tensor
     rigid_flow: torch.Tensor | None = None
     model_depth_ref: torch.Tensor | None = None
+    motion_memory_ref: torch.Tensor | None = None
 
 
 def _scale_flow(flow: torch.Tensor, width: int) -> torch.Tensor:
@@ -140,6 +154,10 @@ def network_inputs(inp: WeightInputs, downscale: int, version: int = INPUT_VERSI
         off_map = sample_by_flow(_downsample(map_deviation(inp.depth_ref, inp.model_depth_ref), (h, w)), flow_low)
         x3 = torch.cat([coords, cur, flow_fine, off_map, ref_warped, change], 1)
         return x3[:, :IN_CHANNELS[4][0]], x3
+    if version == 5:
+        memory = sample_by_flow(_downsample(memory_features(inp.motion_memory_ref, inp.depth_ref), (h, w)), flow_low)
+        x3 = torch.cat([coords, cur, flow_fine, memory, ref_warped, change], 1)
+        return x3[:, :IN_CHANNELS[5][0]], x3
     if inp.rigid_flow is None:
         raise ValueError("weight-network inputs of version 3 need the rigid prior flow (WeightInputs.rigid_flow)")
     nonrigid = torch.asinh(_downsample(inp.flow - inp.rigid_flow, (h, w)) / FLOW_FINE_PX)
