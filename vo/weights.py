@@ -30,7 +30,8 @@ Layout version 5 (stop 28) adds instead, after the sub-pixel flow, the reference
 (:mod:`vo.motion_memory`: the 3D residual at the solved poses averaged over the last second along
 the flow, ``asinh(|mean| / 1e-4)`` relative to the depth, and how much history it holds; 2, on the reference grid, warped
 like the other reference maps; ``WeightInputs.motion_memory_ref``): where the tissue has been
-moving, which one pair's depth noise hides. 15 and 22 channels.
+moving, which one pair's depth noise hides. 15 and 22 channels. (Trained with the shipped recipe it
+tracked worse than version 2, with and without the temporal depth filter: README, "Motion memory".)
 Flows are scaled by ``20 / W`` (a flow of 5 % of the width is 1); the vertical parallax by ``W0 / (2 W)``
 with ``W0 = 640`` (2 px at the paper's resolution is 1).
 """
