@@ -293,6 +293,8 @@ def validate(config: SlamConfig) -> None:
         (0.0 < config.depth.temporal_gain <= 1.0, "depth.temporal_gain must be in (0, 1] (1 = off)"),
         (config.depth.temporal_gate_mm > 0, "depth.temporal_gate_mm must be > 0"),
         (config.depth.temporal_still_mm >= 0, "depth.temporal_still_mm must be >= 0 (0 = filter every frame)"),
+        (0.0 <= config.depth.temporal_velocity_gain < 1.0,
+         "depth.temporal_velocity_gain must be in [0, 1) (0 = no velocity state)"),
     ]
     for ok, message in checks:
         if not ok:

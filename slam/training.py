@@ -359,6 +359,8 @@ def _cache_key(cfg: TrainConfig, path: Path) -> str:
     if cfg.depth.temporal_gain >= 1.0:     # (keys written before the temporal filter existed stay valid)
         for name in ("temporal_gain", "temporal_gate_mm"):
             depth.pop(name)
+    if cfg.depth.temporal_gain >= 1.0 or cfg.depth.temporal_velocity_gain == 0:   # (and before its velocity)
+        depth.pop("temporal_velocity_gain")
     relevant = {"seq": str(path.resolve()), "data": data, "corr": asdict(cfg.correspondence),
                 "depth": depth, "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 2,
                 "inputs": cfg.inputs}

@@ -77,6 +77,11 @@ class DepthConfig:
             both frames while the camera's motion is steady, and that common lag cancels in the
             3D residual. 1 = off (each frame's own stereo depth, the paper's). README, "Temporal
             depth filter".
+        temporal_velocity_gain: > 0: the filter also keeps each pixel's depth velocity (mm per
+            frame, carried along the flow like the depth) and predicts with it, ``p = d_ref(x + F)
+            + v_ref(x + F)``, ``v = v_ref(x + F) + temporal_velocity_gain (d_stereo - p)`` (an
+            alpha-beta filter): a camera whose motion in depth changes is followed without the
+            lag that biases the plain filter. 0: no velocity (the plain exponential filter).
         temporal_gate_mm: where the stereo depth differs from the filtered reference by more than
             this (a disocclusion, the flow landing on another surface, fast motion in depth), the
             pixel starts again from its own stereo depth.
@@ -94,6 +99,7 @@ class DepthConfig:
     temporal_gain: float = 1.0
     temporal_gate_mm: float = 1.0
     temporal_still_mm: float = 0.0
+    temporal_velocity_gain: float = 0.0
 
 
 @dataclass

@@ -87,12 +87,36 @@ def filter_depth_along_flow(depth: torch.Tensor, valid: torch.Tensor, ref_depth:
     """
     if gain >= 1.0:
         return depth
+    return filter_depth_and_velocity_along_flow(depth, valid, ref_depth, ref_valid, flow, flow_ok, gain, gate_mm)[0]
+
+
+def filter_depth_and_velocity_along_flow(depth: torch.Tensor, valid: torch.Tensor, ref_depth: torch.Tensor,
+                                         ref_valid: torch.Tensor, flow: torch.Tensor, flow_ok: torch.Tensor | None,
+                                         gain: float, gate_mm: float, ref_velocity: torch.Tensor | None = None,
+                                         velocity_gain: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`filter_depth_along_flow` with a depth velocity per pixel (an alpha-beta filter).
+
+    The prediction is ``p = d_ref(x + F) + v_ref(x + F)`` and, besides ``d = p + gain (d_stereo -
+    p)``, the velocity is updated as ``v = v_ref(x + F) + velocity_gain (d_stereo - p)``: where the
+    camera's motion in depth changes, the plain filter's lag changes with it and biases the depth
+    change between two frames; the velocity follows it. ``ref_velocity`` ``(B, 1, H, W)`` mm per
+    frame or None (zero); ``velocity_gain`` 0 is the plain filter.
+
+    Returns:
+        ``(depth, velocity)``, each ``(B, 1, H, W)``; the velocity is 0 where the pixel kept its
+        stereo depth (no prediction, or beyond the gate).
+    """
     grid = flow_grid(flow)
-    predicted = sample_by_flow(ref_depth, flow, grid=grid)
+    carried = sample_by_flow(ref_depth, flow, grid=grid)
     # every bilinear neighbour must be valid: a mix with an invalid (0) depth is no prediction
-    use = valid & sample_valid_by_flow(ref_valid, flow, grid) & (predicted > 0)
+    use = valid & sample_valid_by_flow(ref_valid, flow, grid) & (carried > 0)
     if flow_ok is not None:
         use = use & flow_ok
+    velocity = torch.zeros_like(depth)
+    if ref_velocity is not None and velocity_gain > 0:
+        velocity = sample_by_flow(ref_velocity, flow, grid=grid)
+    predicted = carried + velocity
     innovation = depth - predicted
     use = use & (innovation.abs() <= gate_mm)
-    return torch.where(use, predicted + gain * innovation, depth)
+    return (torch.where(use, predicted + gain * innovation, depth),
+            torch.where(use, velocity + velocity_gain * innovation, torch.zeros_like(depth)))

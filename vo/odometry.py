@@ -20,13 +20,13 @@ from vo.camera import StereoCamera
 from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
 from vo.correspondence import make_flow_estimators
 from vo.correspondence.dis import DisFlow, to_gray_u8
-from vo.depth import (depth_from_parallax, filter_depth_along_flow, flow_consistency, parallax_from_depth,
+from vo.depth import (depth_from_parallax, filter_depth_and_velocity_along_flow, flow_consistency, parallax_from_depth,
                       vertical_parallax_ok)
 from vo.geometry import backproject, flow_grid, lands_inside, pixel_grid, sample_by_flow, sample_valid_by_flow
 from vo.lie import rotation_angle_deg
+from vo.motion_memory import relative_residual, update_memory
 from vo.residuals import PoseProblem, residuals
 from vo.solver import solve_pose
-from vo.motion_memory import relative_residual, update_memory
 from vo.weights import (WeightInputs, WeightNetworks, constant_weights, load_weight_networks, rigid_prior_flow,
                         model_reference_checkpoint, uses_map_depth, uses_motion_memory, uses_rigid_flow)
 
@@ -75,6 +75,8 @@ class View:
         motion_memory: ``(1, 4, H, W)`` where the tissue seen in this view has been moving
             (:mod:`vo.motion_memory`), set when it was tracked against a camera frame for
             layout-5 weight networks (:meth:`StereoOdometry.remember_motion`), else None.
+        depth_velocity: ``(1, 1, H, W)`` mm per frame, the filter's depth velocity where ``depth`` was
+            filtered with ``depth.temporal_velocity_gain`` > 0, else None.
     """
 
     image: torch.Tensor
@@ -90,6 +92,7 @@ class View:
     flow_ahead: tuple[weakref.ref, torch.Tensor, torch.Tensor | None] | None = field(default=None, repr=False)
     stereo_depth: torch.Tensor | None = field(default=None, repr=False)
     motion_memory: torch.Tensor | None = field(default=None, repr=False)
+    depth_velocity: torch.Tensor | None = field(default=None, repr=False)
 
 
 @dataclass
@@ -458,11 +461,15 @@ class StereoOdometry:
         dcfg = self.config.depth
         if cur.stereo_depth is not None:
             cur.depth, cur.stereo_depth = cur.stereo_depth, None
+        cur.depth_velocity = None
         if dcfg.temporal_gain >= 1.0 or cur.rendered or ref.rendered or not filter_on:
             return
         cur.stereo_depth = cur.depth
-        cur.depth = filter_depth_along_flow(cur.stereo_depth, cur.valid, ref.depth, ref.valid, flow, flow_ok,
-                                            dcfg.temporal_gain, dcfg.temporal_gate_mm)
+        cur.depth, velocity = filter_depth_and_velocity_along_flow(
+            cur.stereo_depth, cur.valid, ref.depth, ref.valid, flow, flow_ok, dcfg.temporal_gain,
+            dcfg.temporal_gate_mm, ref.depth_velocity, dcfg.temporal_velocity_gain)
+        if dcfg.temporal_velocity_gain > 0:
+            cur.depth_velocity = velocity
 
     def _flow_input(self, view: View, against: View) -> tuple[torch.Tensor, np.ndarray]:
         """``view``'s image and grey image for a temporal flow to ``against``: a real frame's
