@@ -104,7 +104,7 @@ def filter_depth_and_velocity_along_flow(depth: torch.Tensor, valid: torch.Tenso
 
     Returns:
         ``(depth, velocity)``, each ``(B, 1, H, W)``; the velocity is 0 where the pixel kept its
-        stereo depth (no prediction, or beyond the gate).
+        stereo depth (no prediction, or beyond the gate), and None when ``velocity_gain`` is 0.
     """
     grid = flow_grid(flow)
     carried = sample_by_flow(ref_depth, flow, grid=grid)
@@ -112,9 +112,11 @@ def filter_depth_and_velocity_along_flow(depth: torch.Tensor, valid: torch.Tenso
     use = valid & sample_valid_by_flow(ref_valid, flow, grid) & (carried > 0)
     if flow_ok is not None:
         use = use & flow_ok
-    velocity = torch.zeros_like(depth)
-    if ref_velocity is not None and velocity_gain > 0:
-        velocity = sample_by_flow(ref_velocity, flow, grid=grid)
+    if velocity_gain <= 0:
+        innovation = depth - carried
+        use = use & (innovation.abs() <= gate_mm)
+        return torch.where(use, carried + gain * innovation, depth), None
+    velocity = torch.zeros_like(depth) if ref_velocity is None else sample_by_flow(ref_velocity, flow, grid=grid)
     predicted = carried + velocity
     innovation = depth - predicted
     use = use & (innovation.abs() <= gate_mm)

@@ -301,15 +301,18 @@ class StereoOdometry:
         return any(n is not None and uses_motion_memory(n.inputs)
                    for n in (self.weight_networks, self.unfiltered_weight_networks))
 
-    def remember_motion(self, cur: View, ref: View, flow: torch.Tensor, problem: tuple, T: torch.Tensor) -> None:
+    def remember_motion(self, cur: View, ref: View, flow: torch.Tensor, problem: tuple, T: torch.Tensor,
+                        points_cur: torch.Tensor | None = None) -> None:
         """Set ``cur.motion_memory``: ``ref``'s carried along ``flow`` plus the 3D residual of every
         pixel at the pose ``T`` ``(1, 4, 4)`` (current -> reference, translation normalised by
-        ``depth.max_depth_mm``); ``problem`` is :meth:`build_problem`'s. Between camera frames only
-        (a model view's depth is the map's, not the tissue as this frame saw it)."""
+        ``depth.max_depth_mm``); ``problem`` is :meth:`build_problem`'s; ``points_cur`` ``(1, 3, H,
+        W)`` ``cur``'s normalised points if already computed. Between camera frames only (a model
+        view's depth is the map's, not the tissue as this frame saw it)."""
         if cur.rendered or ref.rendered:
             return
         _, _, valid3, points_ref = problem
-        points_cur = backproject(cur.depth / self.config.depth.max_depth_mm, self.K)
+        if points_cur is None:
+            points_cur = backproject(cur.depth / self.config.depth.max_depth_mm, self.K)
         residual = relative_residual(points_cur, points_ref, T, valid3)
         cur.motion_memory = update_memory(ref.motion_memory, flow, residual, valid3)
 
@@ -401,7 +404,8 @@ class StereoOdometry:
             w2d, w3d = self.weight_hook(cur, ref, flow, w2d, w3d)
         t2 = time.perf_counter()
         dmax = self.config.depth.max_depth_mm
-        prob = self._pose_problem(backproject(cur.depth / dmax, self.K), target, points_ref, w2d, w3d)
+        points_cur = backproject(cur.depth / dmax, self.K)
+        prob = self._pose_problem(points_cur, target, points_ref, w2d, w3d)
         n_valid = int(prob.w2d.shape[1])
         prob = prob.subsample(self.config.solver.max_pixels)
         scfg = self.config.solver
@@ -437,7 +441,7 @@ class StereoOdometry:
                     relative = T.numpy().copy()
                     relative[:3, 3] *= dmax
                     if not model_reference and self.keeps_motion_memory():
-                        self.remember_motion(cur, ref, flow, problem, result.T)
+                        self.remember_motion(cur, ref, flow, problem, result.T, points_cur)
         timings.update(flow=(t1 - t0) * 1000.0, weights=(t2 - t1) * 1000.0, solve=(t3 - t2) * 1000.0)
         return TrackResult(relative=relative, failed=failed, reason=reason,
                            iterations=0 if result is None else result.iterations,
@@ -465,11 +469,9 @@ class StereoOdometry:
         if dcfg.temporal_gain >= 1.0 or cur.rendered or ref.rendered or not filter_on:
             return
         cur.stereo_depth = cur.depth
-        cur.depth, velocity = filter_depth_and_velocity_along_flow(
+        cur.depth, cur.depth_velocity = filter_depth_and_velocity_along_flow(
             cur.stereo_depth, cur.valid, ref.depth, ref.valid, flow, flow_ok, dcfg.temporal_gain,
             dcfg.temporal_gate_mm, ref.depth_velocity, dcfg.temporal_velocity_gain)
-        if dcfg.temporal_velocity_gain > 0:
-            cur.depth_velocity = velocity
 
     def _flow_input(self, view: View, against: View) -> tuple[torch.Tensor, np.ndarray]:
         """``view``'s image and grey image for a temporal flow to ``against``: a real frame's
