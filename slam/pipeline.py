@@ -393,7 +393,8 @@ class Pipeline:
         track = self.odometry.track(view, ref, flow_ref, T_init=T_init,
                                     chain_gain=self.chain_gain if kind == "model" else 0.0,
                                     model_reference=kind == "model",
-                                    camera_still=self.odometry.camera_still(self.velocity))
+                                    camera_still=self.odometry.camera_still(self.velocity),
+                                    filter_ref=last_view if kind == "keyframe" else None)
         for stage, ms in track.timings_ms.items():
             self._time(stage, ms)
         if track.failed:

@@ -367,7 +367,8 @@ class StereoOdometry:
         return target, valid, valid3, points_ref
 
     def track(self, cur: View, ref: View, flow_ref: View | None = None, T_init: np.ndarray | None = None,
-              chain_gain: float = 0.0, model_reference: bool = False, camera_still: bool = True) -> TrackResult:
+              chain_gain: float = 0.0, model_reference: bool = False, camera_still: bool = True,
+              filter_ref: View | None = None) -> TrackResult:
         """Estimate the transform from ``cur``'s camera to ``ref``'s camera.
 
         Args:
@@ -390,11 +391,24 @@ class StereoOdometry:
             camera_still: the last tracked motion moved the camera less than
                 ``depth.temporal_still_mm`` (:meth:`camera_still`; the caller keeps the motion):
                 only then is ``cur``'s depth filtered (:meth:`filter_depth`).
+            filter_ref: the real frame ``cur``'s depth is filtered against when that is not
+                ``ref`` (a keyframe reference, ``tracking.keyframe_gap``: the filter runs from one
+                frame to the next, as in training, and the tracking against the keyframe sees the
+                filtered depths' change over the gap); None: ``ref``.
         """
         timings: dict = {}
         t0 = time.perf_counter()
-        flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
-        self.filter_depth(cur, ref, flow, fb_ok, camera_still)
+        if filter_ref is not None and filter_ref is not ref and self.filters_depth(cur, filter_ref, camera_still):
+            ahead = cur.flow_ahead
+            if ahead is not None and ahead[0]() is filter_ref:
+                f_flow, f_ok = ahead[1], ahead[2]
+            else:
+                f_flow, f_ok = self._pair_flow(self.temporal_flow, cur, filter_ref)
+            flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
+            self.filter_depth(cur, filter_ref, f_flow, f_ok, camera_still)
+        else:
+            flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
+            self.filter_depth(cur, ref, flow, fb_ok, camera_still)
         t1 = time.perf_counter()
         problem = self.build_problem(cur, ref, flow, fb_ok)
         target, valid, valid3, points_ref = problem
@@ -454,6 +468,10 @@ class StereoOdometry:
         still_mm = self.config.depth.temporal_still_mm
         return still_mm <= 0 or float(np.linalg.norm(last_relative[:3, 3])) < still_mm
 
+    def filters_depth(self, cur: View, ref: View, filter_on: bool = True) -> bool:
+        """Whether :meth:`filter_depth` filters ``cur`` against ``ref`` (the filter on, two camera frames)."""
+        return self.config.depth.temporal_gain < 1.0 and filter_on and not (cur.rendered or ref.rendered)
+
     def filter_depth(self, cur: View, ref: View, flow: torch.Tensor, flow_ok: torch.Tensor | None,
                      filter_on: bool = True) -> None:
         """With ``depth.temporal_gain`` < 1 and ``filter_on``, replace ``cur.depth`` by its stereo
@@ -466,7 +484,7 @@ class StereoOdometry:
         if cur.stereo_depth is not None:
             cur.depth, cur.stereo_depth = cur.stereo_depth, None
         cur.depth_velocity = None
-        if dcfg.temporal_gain >= 1.0 or cur.rendered or ref.rendered or not filter_on:
+        if not self.filters_depth(cur, ref, filter_on):
             return
         cur.stereo_depth = cur.depth
         cur.depth, cur.depth_velocity = filter_depth_and_velocity_along_flow(
