@@ -81,12 +81,17 @@ class TrackingConfig:
         keyframe_gap: frame2frame: a tracked frame becomes the reference (keyframe) of the
             frames after it once it is this many frames after the current keyframe; the frames
             in between are tracked against the keyframe, not against the frame before them. 1
-            (the default) is the paper's: every frame against the previous one. With 3 a static
-            camera's pose is chained a third as often (the per-frame noise adds up three
-            times slower) and the reference stands further from the current frame (the
-            tissue's motion in between rises above the stereo noise); the networks are trained
-            on pairs 1-5 frames apart. A failed frame makes the last tracked frame the keyframe.
-            README, "Keyframe reference".
+            is the paper's: every frame against the previous one (``configs/paper.yaml``). With
+            the default 5 (while the camera is still, ``keyframe_still_mm``) a static camera's pose is chained a fifth as often (the per-frame
+            noise adds up five times slower) and the reference stands further from the current
+            frame (the tissue's motion in between rises above the depth noise); the networks are
+            trained on pairs 1-5 frames apart. The depth filter (``depth.temporal_gain``) still
+            runs from each frame to the one before it. A failed frame makes the last tracked
+            frame the keyframe. README, "Keyframe reference".
+        keyframe_still_mm: > 0: keep a keyframe only while the camera is still, i.e. while the
+            last tracked motion moved it less than this (mm per frame, as
+            ``depth.temporal_still_mm``): a moving camera's frames are each tracked against the
+            one before it, the paper's reference. 0: the gap applies to every frame.
     """
 
     mode: str = "frame2frame"
@@ -100,7 +105,8 @@ class TrackingConfig:
     poses: str = "estimated"
     stereo_ahead: bool = True
     flow_ahead: bool = True
-    keyframe_gap: int = 1
+    keyframe_gap: int = 5
+    keyframe_still_mm: float = 0.1
 
 
 @dataclass
@@ -289,6 +295,7 @@ def validate(config: SlamConfig) -> None:
         (0.0 <= config.tracking.chain_gain <= 1.0, "tracking.chain_gain must be in [0, 1]"),
         (0 <= config.tracking.refine_passes <= 5, "tracking.refine_passes must be in 0..5"),
         (config.tracking.keyframe_gap >= 1, "tracking.keyframe_gap must be >= 1 (1 = every frame against the previous one)"),
+        (config.tracking.keyframe_still_mm >= 0, "tracking.keyframe_still_mm must be >= 0 (0 = keyframes for a moving camera too)"),
         (config.weights.w2d >= 0 and config.weights.w3d >= 0, "weights.w2d/w3d must be >= 0"),
         (0.0 < config.depth.temporal_gain <= 1.0, "depth.temporal_gain must be in (0, 1] (1 = off)"),
         (config.depth.temporal_gate_mm > 0, "depth.temporal_gate_mm must be > 0"),

@@ -409,9 +409,16 @@ class Pipeline:
         rec = FrameRecord(index, stamp, new_pose @ self.R1, False, "", kind, track.iterations, track.cost)
         self._fuse(view, track.w3d, new_pose, index)
         self._log(k, frame, view, track, new_pose, rec)
-        if self.keyframe_gap > 1 and (self._keyframe is None or k - self._keyframe[0] >= self.keyframe_gap):
-            self._keyframe = (k, view, new_pose)
+        if self.keyframe_gap > 1 and (self._keyframe is None or k - self._keyframe[0] >= self.keyframe_gap
+                                      or not self._keeps_keyframe()):
+            self._keyframe = (k, view, new_pose)    # (a moving camera: the next frame goes against this one)
         return rec, new_pose, view
+
+    def _keeps_keyframe(self) -> bool:
+        """Whether the last tracked motion leaves the camera still enough to keep the keyframe
+        (``tracking.keyframe_still_mm``; always with 0)."""
+        still_mm = self.config.tracking.keyframe_still_mm
+        return still_mm <= 0 or float(np.linalg.norm(self.velocity[:3, 3])) < still_mm
 
     def _fusion_weight_only(self, view: View, last_view: Optional[View]) -> Optional[torch.Tensor]:
         """With known poses, the learned ``(1, 1, H, W)`` w3D of ``view`` against the previous frame.

@@ -167,7 +167,9 @@ class TrainConfig:
     data: TrainDataConfig = field(default_factory=TrainDataConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     correspondence: CorrespondenceConfig = field(default_factory=CorrespondenceConfig)
-    depth: DepthConfig = field(default_factory=DepthConfig)
+    # each frame's own stereo depth unless told otherwise (``--set depth.temporal_gain=0.05`` trains
+    # the networks tracking uses on a still camera's filtered depth; README, "Temporal depth filter")
+    depth: DepthConfig = field(default_factory=lambda: DepthConfig(temporal_gain=1.0, temporal_still_mm=0.0))
     map: MapConfig = field(default_factory=MapConfig)    # the model references' map (data.reference: model)
     # the declarative layer needs a true minimum: no early stop on a flat cost, tight step tolerance;
     # torch's normal equations, with which the shipped checkpoints were trained (reproducible)

@@ -291,7 +291,9 @@ def test_model_views_are_weighted_by_the_model_reference_networks(synth_dir, tmp
     cam = odo._weights(views[1], views[0], flow, problem, model_reference=False)
     model = odo._weights(views[1], views[0], flow, problem, model_reference=True)
     assert not torch.allclose(cam[0], model[0]) and not torch.allclose(cam[1], model[1])
-    assert torch.equal(cam[0], odo.weight_networks(_weight_inputs(odo, views[1], views[0], flow, valid))[0])
+    # an unfiltered frame (stereo depth) is weighed by the networks trained on stereo depth
+    assert odo.unfiltered_weight_networks is not None
+    assert torch.equal(cam[0], odo.unfiltered_weight_networks(_weight_inputs(odo, views[1], views[0], flow, valid))[0])
 
     named = load_config(None, [f"weights.checkpoint={CHECKPOINT_DIR / 'weights_2d3d.pt'}"])
     assert StereoOdometry(ds.camera, named.vo()).model_weight_networks is None

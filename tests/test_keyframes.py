@@ -40,10 +40,11 @@ def test_keyframe_reference_order_and_poses(synth_dir, tmp_path):
     """Gap 3: frames 1-3 against frame 0, 4-6 against 3, ...; the poses compose from the keyframe's
     and stay as accurate as frame-to-frame on a moving camera; gap 1 is the previous frame."""
     data = synth_dir("rigid", 10, (160, 128))
-    one, calls_one = _run(data, tmp_path, "gap1", ["tracking.stereo_ahead=false"])
+    one, calls_one = _run(data, tmp_path, "gap1", ["tracking.keyframe_gap=1", "tracking.stereo_ahead=false"])
     assert [c[1] for c in calls_one] == list(range(9))
     assert [r.reference for r in one.records] == ["first"] + ["previous_frame"] * 9
-    three, calls = _run(data, tmp_path, "gap3", ["tracking.keyframe_gap=3", "tracking.stereo_ahead=false"])
+    three, calls = _run(data, tmp_path, "gap3", ["tracking.keyframe_gap=3", "tracking.keyframe_still_mm=0",
+                                                 "tracking.stereo_ahead=false"])
     assert [(c[0], c[1]) for c in calls] == [(k, 3 * ((k - 1) // 3)) for k in range(1, 10)]
     assert [r.reference for r in three.records] == ["first"] + ["previous_frame", "keyframe", "keyframe"] * 3
     assert not any(r.failed for r in three.records)
@@ -55,6 +56,12 @@ def test_keyframe_reference_order_and_poses(synth_dir, tmp_path):
     for k, kf, _, rel in calls:
         expected = poses[kf] @ R1.T @ rel @ R1
         np.testing.assert_allclose(poses[k], expected, atol=1e-9)
+    # by default a keyframe is kept only while the camera is still: this one moves about 0.5 mm per
+    # frame, so every frame goes against the one before it
+    moving, calls_moving = _run(data, tmp_path, "moving", ["tracking.stereo_ahead=false"])
+    assert load_config(None, []).tracking.keyframe_still_mm == 0.1
+    assert [(c[0], c[1]) for c in calls_moving] == [(k, k - 1) for k in range(1, 10)]
+    assert [r.reference for r in moving.records] == ["first"] + ["previous_frame"] * 9
     # frame2model keeps its own reference: the gap does not apply
     cfg = load_config(None, ["tracking.mode=frame2model", "tracking.keyframe_gap=3"])
     assert Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / "f2m").keyframe_gap == 1
@@ -65,8 +72,9 @@ def test_keyframe_after_a_failure_and_the_solver_start(synth_dir, tmp_path):
     ``solver.init: constant_velocity`` starts a frame tracked against its keyframe from the
     motion since the keyframe plus one more frame's."""
     data = synth_dir("rigid", 10, (160, 128))
-    result, calls = _run(data, tmp_path, "fail", ["tracking.keyframe_gap=3", "tracking.stereo_ahead=false",
-                                                  "solver.init=constant_velocity"], fail_at=5)
+    result, calls = _run(data, tmp_path, "fail", ["tracking.keyframe_gap=3", "tracking.keyframe_still_mm=0",
+                                                  "tracking.stereo_ahead=false", "solver.init=constant_velocity"],
+                         fail_at=5)
     assert [(c[0], c[1]) for c in calls] == [(1, 0), (2, 0), (3, 0), (4, 3), (5, 3), (6, 4), (7, 6), (8, 6), (9, 6)]
     assert [r.failed for r in result.records] == [k == 5 for k in range(10)]
     assert [r.reference for r in result.records][6:] == ["previous_frame", "previous_frame", "keyframe", "keyframe"]
@@ -90,7 +98,8 @@ def test_keyframes_from_the_command_on_a_raw_video_layout(synth_dir, tmp_path):
 
     raw = synth_dir("rigid", 12, (320, 256), seed=5, raw=True)
     out = tmp_path / "run"
-    assert main(["run", str(raw), "--out", str(out), "--set", "tracking.keyframe_gap=3", "--quiet"]) == 0
+    assert main(["run", str(raw), "--out", str(out), "--set", "tracking.keyframe_gap=3",
+                 "--set", "tracking.keyframe_still_mm=0", "--quiet"]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["frames"] == 12 and m["failed_frames"] == []
     assert yaml.safe_load((out / "config.yaml").read_text())["tracking"]["keyframe_gap"] == 3

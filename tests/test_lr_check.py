@@ -44,7 +44,9 @@ def test_pipeline_starts_the_solver_from_the_last_motion(synth_dir, tmp_path):
 
     data = synth_dir("rigid", 6, (160, 128))
     for init in ("constant_velocity", "identity"):
-        cfg = load_config(None, ["weights.mode=constant", f"solver.init={init}", "logging.progress=false"])
+        # every frame against the previous one (a keyframe's start: tests/test_keyframes.py)
+        cfg = load_config(None, ["weights.mode=constant", f"solver.init={init}", "logging.progress=false",
+                                 "tracking.keyframe_gap=1"])
         pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / init)
         starts, motions = [], []
         track = pipe.odometry.track

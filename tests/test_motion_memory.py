@@ -3,6 +3,7 @@ along the flow over about a second)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -149,11 +150,13 @@ def test_tracking_keeps_a_memory_for_layout_5_networks(synth_dir, tmp_path):
     ckpt = tmp_path / "weights_2d3d.pt"
     save_checkpoint(ckpt, tcfg, nets.state_dict(), [], 0, 0, 0, 0.0, 0.0, [], 0.0, True)
     out = tmp_path / "run"
-    assert main(["run", str(data), "--out", str(out), "--set", f"weights.checkpoint={ckpt}", "--quiet"]) == 0
+    # the memory was measured on the paper's reference: every frame against the previous one, stereo depth
+    paper = ["--config", str(Path(__file__).resolve().parents[1] / "configs" / "paper.yaml")]
+    assert main(["run", str(data), "--out", str(out), *paper, "--set", f"weights.checkpoint={ckpt}", "--quiet"]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["frames"] == 8 and m["failed_frames"] == [] and m["ate_rmse_mm"] < 0.5
 
-    cfg = load_config(None, ["logging.progress=false", f"weights.checkpoint={ckpt}"])
+    cfg = load_config(paper[1], ["logging.progress=false", f"weights.checkpoint={ckpt}"])
     pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / "run2")
     odo = pipe.odometry
     assert odo.keeps_motion_memory()

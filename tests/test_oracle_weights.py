@@ -92,7 +92,7 @@ def test_masking_moving_tissue_helps_the_3d_residual_only_on_exact_depth(synth_d
     frames by more than the tissue moves, it does not lower it."""
     tool = load_tool()
     data = synth_dir("breathing", 10, seed=1)
-    common = ["weights.mode=constant", "weights.residuals=3d", "solver.robust_3d_mm=0"]
+    common = ["weights.mode=constant", "weights.residuals=3d", "solver.robust_3d_mm=0", "depth.temporal_gain=1"]
     errors = {}
     for source in ("groundtruth", "stereo"):
         rows = tool.run_sequence(data, [*common, f"depth.source={source}"], gaps=[1], thresholds=[0.005])

@@ -96,7 +96,7 @@ def test_flow_ahead_gives_the_same_run_and_goes_to_the_idle_thread(synth_dir, tm
     extra = [] if mode == "frame2frame" else ["tracking.mode=frame2model", "tracking.flow_reference=chained"]
     poses, main_pairs, ahead_pairs = {}, {}, {}
     for ahead in (True, False):
-        cfg = load_config(None, [*extra, f"tracking.flow_ahead={str(ahead).lower()}", "threads=1"])
+        cfg = load_config(None, [*extra, f"tracking.flow_ahead={str(ahead).lower()}", "threads=1", "tracking.keyframe_gap=1"])
         pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / f"{mode}_{slow}_{ahead}")
         odo = pipe.odometry
         pair_flow, slowed = odo._pair_flow, getattr(odo, "track" if slow == "track" else "make_view")

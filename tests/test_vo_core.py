@@ -222,7 +222,7 @@ def test_robust_3d_step_ignores_a_non_rigid_patch(synth_dir):
     errors = {}
     for scale, model_scale, model_reference in ((0.0, 0.0, False), (0.5, 0.0, False), (0.5, 0.0, True),
                                                 (0.0, 0.5, True)):
-        cfg = load_config(None, ["weights.mode=constant", "weights.w3d=1.0", f"solver.robust_3d_mm={scale}",
+        cfg = load_config(None, ["weights.mode=constant", "weights.w3d=1.0", f"solver.robust_3d_mm={scale}", "depth.temporal_gain=1",
                                  f"solver.robust_3d_model_mm={model_scale}"])
         odo = StereoOdometry(ds.camera, cfg.vo())
         odo._correspondences = lambda cur, ref, flow_ref, chain_gain: (flow, None)     # exact flow
