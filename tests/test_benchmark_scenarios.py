@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import benchmark_scenarios as B  # noqa: E402
@@ -45,14 +46,33 @@ def test_table_has_per_scenario_mean_and_both_averages(tmp_path, monkeypatch, ca
             w = r["w3d"]
             assert 0 < w["fraction_moving"] < 1
             assert 0 < w["moving"] < 1 and 0 < w["still"] < 1 and 0 < w["w2d_moving"] < 1 and 0 < w["w2d_still"] < 1
-            # frame2frame: also split by motion between the two frames (breathing moves some tissue every frame)
-            assert w["pair_threshold_mm"] == 0.02 and 0 < w["fraction_pair_moving"] < 1
-            assert 0 < w["pair_moving"] < 1 and 0 < w["pair_still"] < 1 and 0 < w["w2d_pair_moving"] < 1
+            # against a keyframe (the default gap 5) there is no split by the motion between two frames
+            assert "pair_threshold_mm" not in w and "pair_moving" not in w
             line = next(line for line in check if line.startswith(f"| learned 2D&3D | breathing s{r['seed']} "))
-            assert line.endswith(f"| {w['moving'] / w['still']:.2f} | {w['w2d_moving'] / w['w2d_still']:.2f} "
-                                 f"| {w['pair_moving'] / w['pair_still']:.2f} | {w['w2d_pair_moving'] / w['w2d_pair_still']:.2f} |")
+            assert line.endswith(f"| {w['moving'] / w['still']:.2f} | {w['w2d_moving'] / w['w2d_still']:.2f} |")
         else:
             assert r["method"] != "w = 1" or r["w3d"] is None
+    assert "between frames" not in table
+
+
+def test_previous_frame_reference_also_splits_by_the_motion_between_the_frames(tmp_path, monkeypatch):
+    """With the paper's reference (``tracking.keyframe_gap=1``, every frame against the previous one)
+    the weight check also splits the pixels by how far their tissue moved between the two frames."""
+    out = tmp_path / "bench"
+    monkeypatch.setattr(sys, "argv", ["benchmark_scenarios.py", "--scenarios", "breathing", "--seeds", "5",
+                                      "--frames", "12", "--size", "160x128", "--workers", "1", "--methods",
+                                      "learned 2D&3D", "--set", "tracking.keyframe_gap=1", "--out", str(out)])
+    B.main()
+    (r,) = json.loads((out / "scenarios.json").read_text())
+    w = r["w3d"]
+    assert r["failed"] == 0 and 0 < r["ate_rmse_mm"] < 3.0
+    # breathing moves some tissue every frame
+    assert w["pair_threshold_mm"] == 0.02 and 0 < w["fraction_pair_moving"] < 1
+    assert 0 < w["pair_moving"] < 1 and 0 < w["pair_still"] < 1 and 0 < w["w2d_pair_moving"] < 1
+    table = (out / "scenarios.md").read_text()
+    line = next(line for line in table.splitlines() if line.startswith("| learned 2D&3D | breathing s5 "))
+    assert line.endswith(f"| {w['moving'] / w['still']:.2f} | {w['w2d_moving'] / w['w2d_still']:.2f} "
+                         f"| {w['pair_moving'] / w['pair_still']:.2f} | {w['w2d_pair_moving'] / w['w2d_pair_still']:.2f} |")
     assert "| w3D ratio, moved > 0.02 mm between frames | w2D ratio, moved > 0.02 mm between frames |" in table
 
 
@@ -110,6 +130,23 @@ def test_weight_ratio_summary_covers_scanning_too():
     assert rows == ["| learned 2D&3D | breathing | 3 | 1.00 (0.50-1.50) | 0.50 (0.50-0.50) |",
                     "| learned 2D&3D | scanning | 1 | 1.00 (1.00-1.00) | 1.00 (1.00-1.00) |",
                     "| learned 2D | scanning | 1 | - | 0.80 (0.80-0.80) |"]
+
+
+def test_pooled_ratio_counts_every_pixel_once():
+    """With pixel counts the summary also gives the ratio over all the scenario's pixels pooled:
+    a sequence with many displaced pixels weighs more than one with few."""
+    def stats(moving, n_moving, still, n_still):
+        return {"moving": moving, "still": still, "n_moving": n_moving, "n_still": n_still,
+                "w2d_moving": None, "w2d_still": None, "fraction_moving": n_moving / (n_moving + n_still)}
+
+    a, b = stats(0.02, 300, 0.1, 100), stats(0.06, 100, 0.1, 300)     # ratios 0.2 and 0.6
+    pooled = (0.02 * 300 + 0.06 * 100) / 400 / 0.1
+    assert B.pooled_ratio([a, b], "moving", "still") == pytest.approx(pooled)     # 0.3, not the mean 0.4
+    assert B.pooled_ratio([a, {"moving": 0.1, "still": 0.2}], "moving", "still") is None   # a run without counts
+    results = [{"scenario": "breathing", "seed": k, "method": "learned 2D&3D", "w3d": w} for k, w in ((1, a), (2, b))]
+    rows = B.weight_ratio_summary(results, ["breathing"]).splitlines()
+    assert rows[0] == "| method | scenario | sequences | w3D ratio, median (range); pooled |"
+    assert rows[2] == f"| learned 2D&3D | breathing | 2 | 0.40 (0.20-0.60); pooled {pooled:.2f} |"
 
 
 def test_weight_stats_split_by_rest_shape_and_by_motion_between_frames():

@@ -94,6 +94,7 @@ class WeightStats:
 
     def means(self) -> dict:
         out = {k: (s / n if n else None) for k, (s, n) in self.sums.items()}
+        out.update({"n_" + k: n for k, (_, n) in self.sums.items()})   # pixel counts: pooled ratios
         total = self.sums["moving"][1] + self.sums["still"][1]
         out["fraction_moving"] = self.sums["moving"][1] / total if total else None
         if self.pair_threshold is not None:
@@ -297,11 +298,25 @@ def weight_check(results: list[dict]) -> str:
                       + " | ".join(names) + " |", "|---" * (5 + len(ratios)) + "|", *lines])
 
 
+def pooled_ratio(stats: list[dict], moving: str, still: str) -> float | None:
+    """The ratio of the mean weight over all the sequences' pixels of one kind to the mean over
+    all their other pixels (each pixel of every frame counts once), None without pixel counts."""
+    sums = {}
+    for key in (moving, still):
+        pairs = [(w[key] * w["n_" + key], w["n_" + key]) for w in stats if w.get(key) is not None and ("n_" + key) in w]
+        if not pairs or len(pairs) != len(stats):
+            return None
+        n = sum(c for _, c in pairs)
+        sums[key] = sum(s for s, _ in pairs) / n if n else None
+    return sums[moving] / sums[still] if sums[moving] is not None and sums[still] else None
+
+
 def weight_ratio_summary(results: list[dict], scenarios: list[str]) -> str:
     """Per learned method and scenario (scanning too): the median and range over the sequences of the
     w3D and w2D ratios (non-rigid > 0.5 mm / the rest; and by motion between the frames when
-    recorded). On scanning the camera's own flow can hide the breathing that the ratios show on a
-    static camera."""
+    recorded), and the pooled ratio over all the scenario's pixels (:func:`pooled_ratio`; runs
+    that recorded pixel counts). On scanning the camera's own flow can hide the breathing that the
+    ratios show on a static camera."""
     stats_all = [r["w3d"] for r in results if r.get("w3d")]
     ratios = [rt for rt in RATIOS if any(w.get(rt[1]) is not None for w in stats_all)] or RATIOS[:2]
     lines = []
@@ -311,12 +326,15 @@ def weight_ratio_summary(results: list[dict], scenarios: list[str]) -> str:
             cells = []
             for _, hi, lo in ratios:
                 v = [x for w in stats if (x := _ratio(w, hi, lo)) is not None]
-                cells.append(f"{np.median(v):.2f} ({min(v):.2f}-{max(v):.2f})" if v else "-")
+                pooled = pooled_ratio(stats, hi, lo) if v else None
+                cells.append((f"{np.median(v):.2f} ({min(v):.2f}-{max(v):.2f})" if v else "-")
+                             + (f"; pooled {pooled:.2f}" if pooled is not None else ""))
             if stats and any(c != "-" for c in cells):
                 lines.append(f"| {method} | {s} | {len(stats)} | " + " | ".join(cells) + " |")
     if not lines:
         return ""
-    return "\n".join(["| method | scenario | sequences | " + " | ".join(f"{name}, median (range)" for name, _, _ in ratios)
+    counted = "; pooled" if any("n_moving" in w for w in stats_all) else ""
+    return "\n".join(["| method | scenario | sequences | " + " | ".join(f"{name}, median (range){counted}" for name, _, _ in ratios)
                       + " |", "|---" * (3 + len(ratios)) + "|", *lines])
 
 
