@@ -399,11 +399,7 @@ class StereoOdometry:
         timings: dict = {}
         t0 = time.perf_counter()
         if filter_ref is not None and filter_ref is not ref and self.filters_depth(cur, filter_ref, camera_still):
-            ahead = cur.flow_ahead
-            if ahead is not None and ahead[0]() is filter_ref:
-                f_flow, f_ok = ahead[1], ahead[2]
-            else:
-                f_flow, f_ok = self._pair_flow(self.temporal_flow, cur, filter_ref)
+            f_flow, f_ok = self._flow_against(cur, filter_ref)
             flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
             self.filter_depth(cur, filter_ref, f_flow, f_ok, camera_still)
         else:
@@ -531,17 +527,22 @@ class StereoOdometry:
         flow, fb_ok = self._pair_flow(self._ahead_flow_estimator, cur, against)
         cur.flow_ahead = (weakref.ref(against), flow, fb_ok)
 
+    def _flow_against(self, cur: View, against: View) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The temporal flow ``cur -> against`` (:meth:`_pair_flow`): the one :meth:`flow_ahead`
+        kept on ``cur`` when it goes against that view, else computed now."""
+        ahead = cur.flow_ahead
+        if ahead is not None and ahead[0]() is against:
+            return ahead[1], ahead[2]
+        return self._pair_flow(self.temporal_flow, cur, against)
+
     def _correspondences(self, cur: View, ref: View, flow_ref: View | None,
                          chain_gain: float) -> tuple[torch.Tensor, torch.Tensor | None]:
         """The temporal flow ``cur -> ref`` (through ``flow_ref``, see :meth:`track`) and the
         ``(1, 1, H, W)`` bool mask of flows that passed the checks (None: no check ran)."""
         chain = chain_gain > 0 and flow_ref is not None and flow_ref is not ref
         flow_ref = flow_ref or ref
-        ahead, cur.flow_ahead = cur.flow_ahead, None
-        if ahead is not None and ahead[0]() is flow_ref:
-            flow, fb_ok = ahead[1], ahead[2]
-        else:
-            flow, fb_ok = self._pair_flow(self.temporal_flow, cur, flow_ref)
+        flow, fb_ok = self._flow_against(cur, flow_ref)
+        cur.flow_ahead = None
         if chain:
             last_img, last_gray = self._flow_input(flow_ref, against=ref)
             to_ref = self._flow(self.temporal_flow, last_img, last_gray, ref.image, ref.gray)
