@@ -160,3 +160,38 @@ def test_filtered_depth_runs_frame_to_frame_while_tracking_against_the_keyframe(
 
     for a, b in ((3, 6), (6, 9)):
         assert change_error(a, b, "depth") < 0.3 * change_error(a, b, "stereo_depth")
+
+
+def test_keyframe_settings_range(tmp_path, capsys):
+    """A negative still threshold or a gap below 1 is a one-line error naming the setting."""
+    from slam.cli import main
+
+    assert main(["run", str(tmp_path), "--set", "tracking.keyframe_still_mm=-0.1"]) != 0
+    assert "tracking.keyframe_still_mm must be >= 0" in capsys.readouterr().err
+    assert main(["run", str(tmp_path), "--set", "tracking.keyframe_gap=0"]) != 0
+    assert "tracking.keyframe_gap must be >= 1" in capsys.readouterr().err
+
+
+def test_paper_config_is_the_papers_reference(synth_dir, tmp_path):
+    """``configs/paper.yaml``: every frame against the previous one with its own stereo depth (the
+    defaults keep a keyframe and filter the depth while the camera is still)."""
+    from pathlib import Path
+
+    paper = load_config(str(Path(__file__).resolve().parents[1] / "configs" / "paper.yaml"), ["logging.progress=false"])
+    assert (paper.tracking.keyframe_gap, paper.depth.temporal_gain, paper.depth.temporal_still_mm) == (1, 1.0, 0.0)
+    defaults = load_config(None, [])
+    assert (defaults.tracking.keyframe_gap, defaults.depth.temporal_gain, defaults.depth.temporal_still_mm) == (5, 0.05, 0.1)
+    data = synth_dir("breathing", 8, (160, 128))
+    pipe = Pipeline(paper, open_dataset(data, paper.data), tmp_path / "paper")
+    filtered = []
+    track = pipe.odometry.track
+
+    def spy(cur, ref, *args, **kwargs):
+        result = track(cur, ref, *args, **kwargs)
+        filtered.append(cur.stereo_depth is not None)
+        return result
+
+    pipe.odometry.track = spy
+    result = pipe.run(progress=False)
+    assert [r.reference for r in result.records] == ["first"] + ["previous_frame"] * 7
+    assert filtered == [False] * 7 and pipe.odometry.unfiltered_weight_networks is None
