@@ -70,6 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--breathing-follows-tissue", type=float, default=0.0, metavar="C",
                     help="correlation 0-1 of the breathing amplitude with the tissue's look (red parenchyma "
                          "breathes most); default 0: amplitude independent of the image")
+    sy.add_argument("--camera-speed", type=float, default=1.0, metavar="S",
+                    help="scale of the rigid and scanning cameras' motion per frame (default 1: 0.3-0.9 mm; "
+                         "0.1: a camera creeping below tracking's still threshold)")
 
     tr = sub.add_parser("train", help="train the weight networks end to end through the pose optimum (DDN)",
                         description="Train the weight networks on sequences with ground truth (configs/train.yaml).")
@@ -138,7 +141,8 @@ def cmd_synth(args) -> int:
     from slam.synth import generate
 
     out = generate(args.out, args.scenario, frames=args.frames, size=parse_size(args.size), seed=args.seed,
-                   raw=args.raw, progress=True, breathing_follows_tissue=args.breathing_follows_tissue)
+                   raw=args.raw, progress=True, breathing_follows_tissue=args.breathing_follows_tissue,
+                   camera_speed=args.camera_speed)
     print(f"wrote {args.frames} frames ({args.scenario}, seed {args.seed}) to {out}")
     return 0
 

@@ -64,7 +64,8 @@ def _colour_diff(ref: np.ndarray, other: np.ndarray, mapx: np.ndarray, mapy: np.
 
 # -- arguments -------------------------------------------------------------------------------
 @pytest.mark.parametrize("kwargs", [dict(scenario="nope"), dict(scenario="rigid", size=(5, 80)),
-                                    dict(scenario="rigid", size=(96,)), dict(scenario="rigid", frames=0)])
+                                    dict(scenario="rigid", size=(96,)), dict(scenario="rigid", frames=0),
+                                    dict(scenario="scanning", camera_speed=0), dict(scenario="scanning", camera_speed="x")])
 def test_bad_arguments(tmp_path, kwargs):
     with pytest.raises(DataError) as err:
         generate(tmp_path / "x", **kwargs)
@@ -280,6 +281,20 @@ def test_paths(frames):
         assert angles.max() < 15
         if scenario == "loop":
             assert np.allclose(poses[-1], poses[0], atol=1e-6)
+
+
+def test_camera_speed_scales_the_motion_per_frame_along_the_same_path(tmp_path):
+    """``camera_speed`` (``slam synth --camera-speed``): a creeping camera moves a tenth as far per
+    frame along the same curve, from the same start; 1 is the default path exactly."""
+    for scenario in ("rigid", "scanning"):
+        normal, slow = make_path(scenario, 60, seed=4), make_path(scenario, 60, seed=4, speed=0.1)
+        assert np.array_equal(make_path(scenario, 60, seed=4, speed=1.0), normal)
+        np.testing.assert_allclose(slow[0], normal[0], atol=1e-9)
+        step = lambda p: np.linalg.norm(np.diff(p[:, :3, 3], axis=0), axis=1)
+        assert np.mean(step(slow)) == pytest.approx(0.1 * np.mean(step(normal)), rel=0.05)
+        assert step(slow).max() < 0.1          # below tracking's still threshold (0.1 mm per frame)
+    out = generate(tmp_path / "slow", "scanning", frames=3, size=(96, 80), seed=4, camera_speed=0.1)
+    assert json.loads((out / "synth.json").read_text())["camera_speed"] == 0.1
 
 
 # -- raw mode --------------------------------------------------------------------------------

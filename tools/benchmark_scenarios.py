@@ -116,7 +116,7 @@ def run_one(job: dict) -> dict:
     data = Path(job["data"])
     if not (data / "groundtruth.txt").is_file():
         generate(data, job["scenario"], frames=job["frames"], size=tuple(job["size"]), seed=job["seed"],
-                 breathing_follows_tissue=job["follows"])
+                 breathing_follows_tissue=job["follows"], camera_speed=job.get("camera_speed", 1.0))
     overrides = list(METHODS[job["method"]])
     if job.get("checkpoints") and "weights.mode=learned" in overrides:
         residuals = next(o.split("=", 1)[1] for o in overrides if o.startswith("weights.residuals="))
@@ -146,6 +146,9 @@ def main() -> None:
     ap.add_argument("--breathing-follows-tissue", type=float, default=0.0, metavar="C",
                     help="generate the sequences with the breathing amplitude correlated C with the tissue's look "
                          "(slam synth --breathing-follows-tissue)")
+    ap.add_argument("--camera-speed", type=float, default=1.0, metavar="S",
+                    help="generate the sequences with the moving cameras' motion per frame scaled by S "
+                         "(slam synth --camera-speed; 0.1: creeping below tracking's still threshold)")
     ap.add_argument("--checkpoints", default=None,
                     help="folder with weights_{2d3d,2d,3d}.pt to use instead of the packaged checkpoints")
     ap.add_argument("--report", default=None, metavar="DIR",
@@ -168,11 +171,13 @@ def main() -> None:
     for scenario in args.scenarios:
         for seed in args.seeds:
             tag = f"_ft{args.breathing_follows_tissue:g}" if args.breathing_follows_tissue else ""
+            tag += f"_v{args.camera_speed:g}" if args.camera_speed != 1.0 else ""
             data = out / "data" / f"{scenario}_s{seed}_{args.size}_{args.frames}{tag}"
             for method in args.methods:
                 jobs.append({"scenario": scenario, "seed": seed, "method": method, "data": str(data),
                              "frames": args.frames, "size": [w, h], "extra": args.set,
-                             "follows": args.breathing_follows_tissue, "checkpoints": args.checkpoints,
+                             "follows": args.breathing_follows_tissue, "camera_speed": args.camera_speed,
+                             "checkpoints": args.checkpoints,
                              "out": str(out / "runs" / f"{scenario}_s{seed}_{method.replace(' ', '_').replace('&', 'and')}")})
     # generate each sequence once before the workers share it
     from slam.synth import generate
@@ -180,7 +185,7 @@ def main() -> None:
     for job in {j["data"]: j for j in jobs}.values():
         if not (Path(job["data"]) / "groundtruth.txt").is_file():
             generate(job["data"], job["scenario"], frames=job["frames"], size=(w, h), seed=job["seed"],
-                     breathing_follows_tissue=job["follows"])
+                     breathing_follows_tissue=job["follows"], camera_speed=job["camera_speed"])
     with ProcessPoolExecutor(args.workers) as pool:
         results = list(pool.map(run_one, jobs))
     methods = args.methods

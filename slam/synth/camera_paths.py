@@ -39,8 +39,9 @@ def _base_rotation(rng: np.random.Generator) -> np.ndarray:
                                degrees=True).as_matrix()
 
 
-def scanning_path(rng: np.random.Generator, frames: int) -> np.ndarray:
-    """Lateral figure-of-eight scanning with depth change and a few degrees of rotation.
+def scanning_path(rng: np.random.Generator, frames: int, speed: float = 1.0) -> np.ndarray:
+    """Lateral figure-of-eight scanning with depth change and a few degrees of rotation; ``speed``
+    scales the distance per frame along the same curve (1: 0.3-0.9 mm per frame).
 
     The figure-of-eight ``(Ax sin t, Ay sin 2t)`` never has zero velocity, so the arc-length
     reparameterisation is well defined everywhere.
@@ -59,7 +60,7 @@ def scanning_path(rng: np.random.Generator, frames: int) -> np.ndarray:
         eul = rot_amp * np.sin(rot_w * t[:, None] + rot_p)
         return xyz, eul
 
-    steps = _speed_profile(rng, frames - 1, rng.uniform(0.45, 0.7))
+    steps = _speed_profile(rng, frames - 1, rng.uniform(0.45, 0.7)) * speed
     total = float(steps.sum())
     # dense sampling long enough for the whole distance (the 8 is at least 4*ax long per lap)
     laps = total / (4 * ax) + 1
@@ -111,12 +112,14 @@ def loop_path(rng: np.random.Generator, frames: int) -> np.ndarray:
     return np.stack([_pose(p, e, base) for p, e in zip(xyz, eul)])
 
 
-def make_path(scenario: str, frames: int, seed: int) -> np.ndarray:
-    """Left-camera poses ``(frames, 4, 4)`` ``T_wc`` (mm) of a scenario."""
+def make_path(scenario: str, frames: int, seed: int, speed: float = 1.0) -> np.ndarray:
+    """Left-camera poses ``(frames, 4, 4)`` ``T_wc`` (mm) of a scenario; ``speed`` scales how far
+    the rigid and scanning cameras move per frame (a loop always closes over its frames; a static
+    camera does not move)."""
     rng = np.random.default_rng([seed, 3])
     if scenario == "loop":
         return loop_path(rng, frames)
-    path = scanning_path(rng, max(frames, 2))[:frames]  # rigid and scanning share the path
+    path = scanning_path(rng, max(frames, 2), speed)[:frames]  # rigid and scanning share the path
     if scenario in STATIC:
         return np.repeat(path[:1], frames, axis=0)
     return path

@@ -79,7 +79,7 @@ def _files_meaning(raw: bool, masks: bool, video: str | None) -> dict:
 
 def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = (640, 512), seed: int = 0,
              raw: bool = False, fps: float = 25.0, progress: bool = False,
-             breathing_follows_tissue: float = 0.0) -> Path:
+             breathing_follows_tissue: float = 0.0, camera_speed: float = 1.0) -> Path:
     """Render a synthetic stereo sequence with ground truth into ``out_dir``.
 
     Args:
@@ -95,6 +95,8 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
         breathing_follows_tissue: correlation in [0, 1] of the breathing amplitude map with how the
             tissue looks (red parenchyma breathes most; see ``make_breathing``); 0 keeps it
             independent of the image.
+        camera_speed: scales the rigid and scanning cameras' motion per frame (1: 0.3-0.9 mm,
+            0.1: a camera creeping at 0.03-0.09 mm per frame, below tracking's still threshold).
 
     Returns:
         ``out_dir`` as a Path.
@@ -109,13 +111,19 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
         follows = float("nan")
     if not 0.0 <= follows <= 1.0:
         raise DataError(f"bad breathing_follows_tissue {breathing_follows_tissue!r}: expected a number in [0, 1]")
+    try:
+        speed = float(camera_speed)
+    except (TypeError, ValueError):
+        speed = float("nan")
+    if not (np.isfinite(speed) and speed > 0):
+        raise DataError(f"bad camera_speed {camera_speed!r}: expected a positive number")
     frames, seed, fps = int(frames), int(seed), float(fps)
     out = Path(out_dir)
     prepare_out_dir(out)
 
     scene = make_scene(seed)
     rig = raw_rig(width, height, seed) if raw else rectified_rig(width, height)
-    poses = make_path(scenario, frames, seed)
+    poses = make_path(scenario, frames, seed, speed)
     breathing = make_breathing(scene, seed, follows) if scenario in BREATHES else None
     instrument = InstrumentMotion(scene, seed, poses[0], breathing) if scenario == "deforming" else None
     renderer = Renderer(scene, breathing, mm_per_px=scene.rest_depth_mm / rig.left.K[0, 0])
@@ -180,6 +188,7 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
         "light": "point light at the left camera's optical centre",
         "breathing_period_s": breathing.period_s if breathing is not None else None,
         "breathing_follows_tissue": follows,
+        "camera_speed": speed,
         "files": _files_meaning(raw, masks, video),
         "notes": ("raw mode: depth/ and nonrigid/ are not written (ground truth is for rectified output only)"
                   if raw else ""),
