@@ -82,10 +82,10 @@ class TrackingConfig:
             frames after it once it is this many frames after the current keyframe; the frames
             in between are tracked against the keyframe, not against the frame before them. 1
             is the paper's: every frame against the previous one (``configs/paper.yaml``). With
-            the default 5 (while the camera is still, ``keyframe_still_mm``) a static camera's pose is chained a fifth as often (the per-frame
-            noise adds up five times slower) and the reference stands further from the current
-            frame (the tissue's motion in between rises above the depth noise); the networks are
-            trained on pairs 1-5 frames apart. The depth filter (``depth.temporal_gain``) still
+            the default 5 (while the camera is still, ``keyframe_still_mm``) a static camera's
+            pose is chained a fifth as often (the per-frame noise adds up five times slower) and
+            the reference stands further from the current frame (the tissue's motion in between
+            rises above the depth noise); the networks are trained on pairs 1-5 frames apart. The depth filter (``depth.temporal_gain``) still
             runs from each frame to the one before it. A failed frame makes the last tracked
             frame the keyframe. README, "Keyframe reference".
         keyframe_still_mm: > 0: keep a keyframe only while the camera is still, i.e. while the
