@@ -85,9 +85,10 @@ class TrackingConfig:
             the default 5 (while the camera is still, ``keyframe_still_mm``) a static camera's
             pose is chained a fifth as often (the per-frame noise adds up five times slower) and
             the reference stands further from the current frame (the tissue's motion in between
-            rises above the depth noise); the networks are trained on pairs 1-5 frames apart. The depth filter (``depth.temporal_gain``) still
-            runs from each frame to the one before it. A failed frame makes the last tracked
-            frame the keyframe. README, "Keyframe reference".
+            rises above the depth noise); the networks are trained on pairs 1-5 frames apart.
+            The depth filter (``depth.temporal_gain``) still runs from each frame to the one
+            before it. A failed frame makes the last tracked frame the keyframe. README,
+            "Keyframe reference".
         keyframe_still_mm: > 0: keep a keyframe only while the camera is still, i.e. while the
             last tracked motion moved it less than this (mm per frame, as
             ``depth.temporal_still_mm``): a moving camera's frames are each tracked against the

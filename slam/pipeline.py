@@ -25,7 +25,7 @@ from slam.errors import DataError, SlamError
 from slam.frame_view import frame_view
 from slam.prefetch import Prefetcher
 from slam.tum import TumStreamWriter
-from vo.odometry import StereoOdometry, TrackResult, View
+from vo.odometry import StereoOdometry, TrackResult, View, moved_less_than
 
 log = logging.getLogger("slam")
 
@@ -417,8 +417,7 @@ class Pipeline:
     def _keeps_keyframe(self) -> bool:
         """Whether the last tracked motion leaves the camera still enough to keep the keyframe
         (``tracking.keyframe_still_mm``; always with 0)."""
-        still_mm = self.config.tracking.keyframe_still_mm
-        return still_mm <= 0 or float(np.linalg.norm(self.velocity[:3, 3])) < still_mm
+        return moved_less_than(self.velocity, self.config.tracking.keyframe_still_mm)
 
     def _fusion_weight_only(self, view: View, last_view: Optional[View]) -> Optional[torch.Tensor]:
         """With known poses, the learned ``(1, 1, H, W)`` w3D of ``view`` against the previous frame.

@@ -398,13 +398,12 @@ class StereoOdometry:
         """
         timings: dict = {}
         t0 = time.perf_counter()
-        if filter_ref is not None and filter_ref is not ref and self.filters_depth(cur, filter_ref, camera_still):
-            f_flow, f_ok = self._flow_against(cur, filter_ref)
-            flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
-            self.filter_depth(cur, filter_ref, f_flow, f_ok, camera_still)
-        else:
-            flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
-            self.filter_depth(cur, ref, flow, fb_ok, camera_still)
+        against = filter_ref if filter_ref is not None and self.filters_depth(cur, filter_ref, camera_still) else ref
+        # the flow to another frame first: _correspondences hands the read-ahead flow on only once
+        filter_flow = self._flow_against(cur, against) if against is not ref else None
+        flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
+        f_flow, f_ok = filter_flow if filter_flow is not None else (flow, fb_ok)
+        self.filter_depth(cur, against, f_flow, f_ok, camera_still)
         t1 = time.perf_counter()
         problem = self.build_problem(cur, ref, flow, fb_ok)
         target, valid, valid3, points_ref = problem
@@ -461,8 +460,7 @@ class StereoOdometry:
     def camera_still(self, last_relative: np.ndarray) -> bool:
         """Whether the last tracked motion, ``(4, 4)`` mm, moved the camera less than
         ``depth.temporal_still_mm`` (always True when that is 0): :meth:`track`'s ``camera_still``."""
-        still_mm = self.config.depth.temporal_still_mm
-        return still_mm <= 0 or float(np.linalg.norm(last_relative[:3, 3])) < still_mm
+        return moved_less_than(last_relative, self.config.depth.temporal_still_mm)
 
     def filters_depth(self, cur: View, ref: View, filter_on: bool = True) -> bool:
         """Whether :meth:`filter_depth` filters ``cur`` against ``ref`` (the filter on, two camera frames)."""
@@ -587,6 +585,12 @@ class StereoOdometry:
             self.previous_relative = result.relative
             self.reference = view
         return result
+
+
+def moved_less_than(relative: np.ndarray, still_mm: float) -> bool:
+    """Whether the ``(4, 4)`` mm motion ``relative`` translated the camera less than ``still_mm``
+    (always True when that is 0 or less: no threshold)."""
+    return still_mm <= 0 or float(np.linalg.norm(relative[:3, 3])) < still_mm
 
 
 def warn_depth_filter_mismatch(meta: dict, temporal_gain: float, checkpoint: str) -> None:
