@@ -1,0 +1,32 @@
+"""Tracking does not change unnoticed: short default-config runs against the recorded reference
+(``tools/record_regression.py``; re-record it in the commit that changes tracking on purpose)."""
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tools"))
+import record_regression  # noqa: E402
+
+REFERENCE = json.loads(record_regression.DEFAULT_OUT.read_text())
+
+
+@pytest.mark.parametrize("name", sorted(record_regression.RUNS))
+def test_tracking_matches_the_recorded_reference(name, tmp_path_factory):
+    root = tmp_path_factory.getbasetemp() / "regression"
+    root.mkdir(exist_ok=True)
+    assert (REFERENCE["size"], REFERENCE["seed"], REFERENCE["frames"]) == (
+        list(record_regression.SIZE), record_regression.SEED, record_regression.FRAMES)
+    expected = REFERENCE["runs"][name]
+    got = record_regression.run(name, root)
+    ref_poses = np.asarray(expected["poses"])
+    assert got["poses"].shape == ref_poses.shape
+    assert got["failed_frames"] == expected["failed_frames"]
+    moved = np.linalg.norm(got["poses"][:, :3, 3] - ref_poses[:, :3, 3], axis=1)
+    assert moved.max() < 1e-3, f"{name}: a pose moved {moved.max():.2e} mm (frame {int(moved.argmax())})"
+    turned = np.abs(got["poses"][:, :3, :3] - ref_poses[:, :3, :3]).max()
+    assert turned < 1e-5, f"{name}: a rotation changed by {turned:.2e}"
+    assert got["ate_rmse_mm"] == pytest.approx(expected["ate_rmse_mm"], rel=0.005)
