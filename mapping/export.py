@@ -5,7 +5,12 @@ import os
 
 import numpy as np
 
-from .config import MapConfig
+# Poisson vertices whose density is below this quantile are trimmed (the sparse skirt Poisson
+# grows where few points support the surface)
+MESH_DENSITY_QUANTILE = 0.02
+# Poisson vertices farther than this many median surfel radii from the nearest stable surfel are
+# trimmed (Poisson extrapolates over holes and borders)
+MESH_TRIM_RADIUS_FACTOR = 6.0
 
 
 def _o3d():
@@ -65,7 +70,7 @@ def save_ply(points: dict, path, scale: float = 1e-3) -> int:
     return n
 
 
-def save_mesh(points: dict, path, cfg: MapConfig, scale: float = 1e-3, depth: int = 8) -> int:
+def save_mesh(points: dict, path, scale: float = 1e-3, depth: int = 8) -> int:
     """Surface mesh of ``points`` (Poisson, trimmed by density and by distance to the points).
 
     Falls back to ball pivoting when Poisson yields nothing; returns the triangle count (0 and an
@@ -86,11 +91,11 @@ def save_mesh(points: dict, path, cfg: MapConfig, scale: float = 1e-3, depth: in
                 pcd, depth=int(depth), scale=1.1, linear_fit=False)
         dens = np.asarray(dens)
         drop = np.zeros(len(dens), dtype=bool)
-        if cfg.mesh_density_quantile > 0 and len(dens):
-            drop |= dens < np.quantile(dens, cfg.mesh_density_quantile)
+        if MESH_DENSITY_QUANTILE > 0 and len(dens):
+            drop |= dens < np.quantile(dens, MESH_DENSITY_QUANTILE)
         verts = o3d.geometry.PointCloud(mesh.vertices)
         dist = np.asarray(verts.compute_point_cloud_distance(pcd))
-        drop |= dist > cfg.mesh_trim_radius_factor * max(r_med, 1e-12)
+        drop |= dist > MESH_TRIM_RADIUS_FACTOR * max(r_med, 1e-12)
         mesh.remove_vertices_by_mask(drop)
         mesh.remove_unreferenced_vertices()
         if len(mesh.triangles) == 0:

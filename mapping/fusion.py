@@ -20,7 +20,7 @@ Per frame:
    one closest to the pixel's ray.  Matching losers whose centre lies on the winner's disc are
    merged into it (Keller et al. 2013) - this keeps about one surfel per pixel of surface.
 5. *Update*: matched surfels take the confidence-weighted running average of position, normal,
-   colour and radius (only when the measurement's radius is below ``radius_update_ratio`` x the
+   colour and radius (only when the measurement's radius is below ``RADIUS_UPDATE_RATIO`` x the
    surfel's - ElasticFusion's rule favouring fine measurements), ``conf += w``, ``t_last = frame``;
    unmatched fusable pixels become new surfels with ``conf = w``.
 6. *Time window*: unstable surfels still unstable ``unstable_window`` frames after their creation
@@ -40,8 +40,55 @@ import torch
 
 from . import kernels
 from .config import MapConfig
-from .render import KEY_EMPTY, Camera, cell_winners, visible_set
-from .surfels import SurfelStore, take, to_rows
+from .render import FAR_MM, KEY_EMPTY, NEAR_MM, SPLAT_MAX_HALF, Camera, cell_winners, visible_set
+from .surfels import SORT_CELL_MM, SurfelStore, take, to_rows
+
+# ---- per-pixel measurements
+# a central-difference normal needs both neighbours along x and y valid and within this fraction of
+# the centre depth (depth jumps get no normal and are not fused); 0.03 admits surfaces inclined up
+# to ~75-80 deg to the view at 150-600 px focal length
+NORMAL_MAX_JUMP_REL = 0.03
+# clamp of |n . ray| in the radius r = sqrt(2) * depth / f / max(|n . ray|, c): a grazing surfel's
+# radius is at most twice the fronto-parallel one (ElasticFusion's min(2 r, r / |n_z|))
+RADIUS_MIN_COS = 0.5
+# extra factor on the surfel radius (1 = ElasticFusion's sqrt(2) * depth / f)
+RADIUS_SCALE = 1.0
+# sigma of the radial confidence weight exp(-d^2 / (2 sigma^2)), d = distance from the principal
+# point over that of the farthest image corner (ElasticFusion: 0.6); 0 disables the weighting
+RADIAL_SIGMA = 0.6
+# pixels whose fusion weight (input weight x radial weight) is at most this are neither fused nor
+# used for the free-space test (0: only weight-0 pixels - instruments, specularities, deformation)
+MIN_FUSE_WEIGHT = 0.0
+
+# ---- data association and fusion
+# super-sampling of the index map of the projective data association (ElasticFusion: 4, i.e. 4x4
+# cells per pixel, each holding its nearest surfel)
+INDEX_SCALE = 4
+# depth tolerance of a match (surfel vs measured depth): max(ASSOC_DEPTH_MM, ASSOC_DEPTH_REL * depth)
+ASSOC_DEPTH_MM = 2.0
+ASSOC_DEPTH_REL = 0.02
+# maximum angle (deg) between the measured and the surfel normal of a match
+ASSOC_NORMAL_DEG = 35.0
+# candidates within this fraction of the best confidence are tied; the one closest to the pixel's
+# ray wins (Keller et al. 2013)
+ASSOC_CONF_TIE_REL = 0.05
+# a match updates position, normal, colour and radius only when its radius is below this times the
+# surfel's (ElasticFusion: coarser measurements never blur finer surfels)
+RADIUS_UPDATE_RATIO = 1.5
+# a matching candidate that loses to a more confident one is merged into the winner when their
+# centres are closer than this times the smaller radius (Keller et al. 2013); 0 disables merging
+MERGE_RADIUS_FACTOR = 1.0
+# an unmatched pixel within half a radius of a surfel centred in a neighbouring pixel adds no new
+# surfel: without this about one mapped pixel in eight adds a duplicate every frame (12 % of a
+# scanning frame's pixels; see covered_pixels)
+SKIP_COVERED = True
+
+# ---- free space
+# free-space margin max(MapConfig.free_space_mm, FREE_SPACE_REL * depth), never below the
+# association tolerance
+FREE_SPACE_REL = 0.04
+# confidence factor applied to a stable surfel violating free space (an unstable one is removed)
+FREE_SPACE_DECAY = 0.5
 
 
 @dataclass
@@ -79,8 +126,10 @@ def radial_weight(H: int, W: int, cx: float, cy: float, sigma: float, device: st
 
 
 def measure(depth: torch.Tensor, color: torch.Tensor, cam: Camera, cfg: MapConfig,
-            weight: torch.Tensor | None = None, valid: torch.Tensor | None = None) -> Measurement:
-    """Back-projected points, normals, radii and fusion weights of one frame.
+            weight: torch.Tensor | None = None, valid: torch.Tensor | None = None, *,
+            min_fuse_weight: float = MIN_FUSE_WEIGHT) -> Measurement:
+    """Back-projected points, normals, radii and fusion weights of one frame (pixels of fusion
+    weight at most ``min_fuse_weight`` are not fused).
 
     Normals are the cross product of the central differences of the back-projected points
     ``P = z (rx, ry, 1)``; with ``z_u = (z[u+1] - z[u-1]) / 2`` and ``m_u = (z[u+1] + z[u-1]) / 2``
@@ -100,11 +149,11 @@ def measure(depth: torch.Tensor, color: torch.Tensor, cam: Camera, cfg: MapConfi
     ok = (depth >= cfg.min_depth_mm) & (depth <= cfg.max_depth_mm)      # False for NaN too
     if valid is not None:
         ok &= torch.as_tensor(valid, device=dev).bool()
-    w = radial_weight(H, W, cam.cx, cam.cy, float(cfg.radial_sigma), str(dev))
+    w = radial_weight(H, W, cam.cx, cam.cy, float(RADIAL_SIGMA), str(dev))
     if weight is not None:
         win = torch.as_tensor(weight, dtype=torch.float32, device=dev)
         w = w * torch.nan_to_num(win, nan=0.0).clamp(0.0, 1.0)
-    ok &= w > cfg.min_fuse_weight
+    ok &= w > min_fuse_weight
     rx, ry = _rays(H, W, cam.fx, cam.fy, cam.cx, cam.cy, str(dev))
     if kernels.use_compiled(cfg, dev):
         HW = H * W
@@ -112,8 +161,8 @@ def measure(depth: torch.Tensor, color: torch.Tensor, cam: Camera, cfg: MapConfi
                    weight=torch.empty(HW), fuse=torch.empty(HW, dtype=torch.bool), free_depth=torch.empty(HW))
         kernels.measure(depth.contiguous().numpy(), ok.contiguous().numpy(), w.contiguous().numpy(),
                         rx.reshape(-1).numpy(), ry.reshape(-1).numpy(), cam.fx, cam.fy,
-                        float(cfg.normal_max_jump_rel), float(cfg.radius_min_cos),
-                        cfg.radius_scale * math.sqrt(2.0) / cam.f, *(x.numpy() for x in out.values()))
+                        float(NORMAL_MAX_JUMP_REL), float(RADIUS_MIN_COS),
+                        RADIUS_SCALE * math.sqrt(2.0) / cam.f, *(x.numpy() for x in out.values()))
         return Measurement(color=to_rows(color.reshape(3, HW)), **out)
     z = torch.where(ok, depth, 0.0)
 
@@ -129,7 +178,7 @@ def measure(depth: torch.Tensor, color: torch.Tensor, cam: Camera, cfg: MapConfi
         zu, mu = (zr - zl) * 0.5, (zr + zl) * 0.5
         zv, mv = (zb - zt) * 0.5, (zb + zt) * 0.5
         zc = z[c]
-        tol = cfg.normal_max_jump_rel * zc
+        tol = NORMAL_MAX_JUMP_REL * zc
         good = (ok[c] & ok[1:-1, 2:] & ok[1:-1, :-2] & ok[2:, 1:-1] & ok[:-2, 1:-1]
                 & ((zr - zc).abs() <= tol) & ((zc - zl).abs() <= tol)       # no depth jump on
                 & ((zb - zc).abs() <= tol) & ((zc - zt).abs() <= tol))      # either side
@@ -144,8 +193,8 @@ def measure(depth: torch.Tensor, color: torch.Tensor, cam: Camera, cfg: MapConfi
         # |n . r_hat| = m_u m_v / (|a| |r|)
         cos[c] = muv * inv * torch.rsqrt(1.0 + rxc * rxc + ryc * ryc)
         nvalid[c] = good
-    cos = cos.clamp(cfg.radius_min_cos, 1.0)
-    radius = (cfg.radius_scale * math.sqrt(2.0) / cam.f) * z / cos
+    cos = cos.clamp(RADIUS_MIN_COS, 1.0)
+    radius = (RADIUS_SCALE * math.sqrt(2.0) / cam.f) * z / cos
 
     HW = H * W
     P = torch.stack([rx * z, ry * z, z], dim=-1)
@@ -180,26 +229,28 @@ class _Timer:
 
 
 def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measurement, frame: int,
-               timer: _Timer | None = None) -> dict:
-    """Fuse one prepared frame into ``store``; returns stats (matched, added, removed, visible, ...)."""
+               timer: _Timer | None = None, *, skip_covered: bool = SKIP_COVERED) -> dict:
+    """Fuse one prepared frame into ``store``; returns stats (matched, added, removed, visible, ...).
+
+    ``skip_covered``: unmatched pixels on a neighbour's disc add no surfel (:func:`covered_pixels`)."""
     timer = timer or _Timer(False, store.device)
     dev = store.device
     H, W = cam.height, cam.width
     HW = H * W
-    s = int(cfg.index_scale)
-    cos_thr = math.cos(math.radians(cfg.assoc_normal_deg))
+    s = int(INDEX_SCALE)
+    cos_thr = math.cos(math.radians(ASSOC_NORMAL_DEG))
 
     # store maintenance first (it moves slots; the view cached at the end stays valid)
     store.edits += 1                                # matched surfels are updated in place below
     store.scratch.pop("view", None)
-    if not store.maybe_compact() and cfg.sort_cell_mm > 0:
-        store.sort_aged(cfg.sort_cell_mm, min_chunks=max(16, (1 << 16) // store.chunk_size))
+    if not store.maybe_compact() and SORT_CELL_MM > 0:
+        store.sort_aged(SORT_CELL_MM, min_chunks=max(16, (1 << 16) // store.chunk_size))
     timer.lap("maintain")
 
     # the visible set includes the ring a render of this view needs (cached for it below); the
     # fusion itself only uses the surfels whose centre lies inside the image
     compiled = kernels.use_compiled(cfg, dev)
-    vis = visible_set(store, cam, cfg.near_mm, cfg.far_mm, margin_px=float(cfg.splat_max_half), compiled=compiled)
+    vis = visible_set(store, cam, NEAR_MM, FAR_MM, margin_px=float(SPLAT_MAX_HALF), compiled=compiled)
     timer.lap("cull")
 
     matched_pix = torch.zeros(HW, dtype=torch.bool, device=dev)
@@ -212,7 +263,7 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
     covered = torch.zeros(HW, dtype=torch.bool, device=dev)     # unmatched, on a neighbour's disc
     if len(vis) and compiled:
         matched_pix, covered, free_kill, merge_kill, touched, decayed, n_visible = _associate_compiled(
-            store, cfg, cam, meas, vis, frame)
+            store, cfg, cam, meas, vis, frame, skip_covered)
         removed += store.kill(free_kill)
         merged = store.kill(merge_kill)
         removed += merged
@@ -231,15 +282,15 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
         # (tested first: a violator is seen through this frame, so it must neither occlude nor be
         # matched in the index map)
         D = take(meas.free_depth, pix_all)
-        margin = torch.maximum(torch.clamp_min(cfg.free_space_rel * D, cfg.free_space_mm),
-                               torch.clamp_min(cfg.assoc_depth_rel * D, cfg.assoc_depth_mm))
+        margin = torch.maximum(torch.clamp_min(FREE_SPACE_REL * D, cfg.free_space_mm),
+                               torch.clamp_min(ASSOC_DEPTH_REL * D, ASSOC_DEPTH_MM))
         viol = (D > 0) & (vis.p[:, 2] < D - margin) & ~outside
         vslots = take(vis.slots, viol.nonzero().squeeze(1))
         if vslots.numel():
             vconf = take(store.conf, vslots)
             unstable = vconf < cfg.stable_confidence
             st = vslots[~unstable]
-            store.conf.index_copy_(0, st, vconf[~unstable] * cfg.free_space_decay)
+            store.conf.index_copy_(0, st, vconf[~unstable] * FREE_SPACE_DECAY)
             decayed = int(st.numel())
             removed += store.kill(vslots[unstable])
         timer.lap("free_space")
@@ -266,23 +317,23 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
         cslots = take(vis.slots, cand)
         ns = cam.rot_to_cam(take(store.normal, cslots))
         zm = q[:, 2]
-        tol = torch.clamp_min(cfg.assoc_depth_rel * zm, cfg.assoc_depth_mm)
+        tol = torch.clamp_min(ASSOC_DEPTH_REL * zm, ASSOC_DEPTH_MM)
         ok = take(meas.fuse, pix) & ((ps[:, 2] - zm).abs() <= tol) & (_rowsum(ns * nm) >= cos_thr)
         conf = take(store.conf, cslots)
         best_conf = torch.full((HW,), -1.0, device=dev).scatter_reduce_(
             0, pix, torch.where(ok, conf, -1.0), reduce="amax")
         # most confident wins; near-ties go to the candidate closest to the pixel's ray
-        tie = ok & (conf >= take(best_conf, pix) * (1.0 - cfg.assoc_conf_tie_rel))
+        tie = ok & (conf >= take(best_conf, pix) * (1.0 - ASSOC_CONF_TIE_REL))
         key = torch.add(torch.arange(pix.numel(), device=dev), dray, alpha=1 << 32)   # dray << 32 | i
         key = torch.where(tie, key, KEY_EMPTY)
         best = torch.full((HW,), KEY_EMPTY, dtype=torch.long, device=dev).scatter_reduce_(
             0, pix, key, reduce="amin")
         chosen_mask = tie & (key == take(best, pix))
         chosen = chosen_mask.nonzero().squeeze(1)
-        if cfg.skip_covered:
-            covered = covered_pixels(store, cfg, cam, meas, pix, take(vis.u, cand), take(vis.v, cand), ps,
+        if skip_covered:
+            covered = covered_pixels(cam, meas, pix, take(vis.u, cand), take(vis.v, cand), ps,
                                      ns, take(store.radius, cslots), take(pix, chosen))
-        if cfg.merge_radius_factor > 0:
+        if MERGE_RADIUS_FACTOR > 0:
             merged = merge_redundant(store, cfg, pix, ps, cslots, chosen, ok & ~chosen_mask, HW)
             removed += merged
         pix, q, nm, cslots = (take(x, chosen) for x in (pix, q, nm, cslots))
@@ -293,7 +344,7 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
             c = take(store.conf, cslots)
             r_old = take(store.radius, cslots)
             r_new = take(meas.radius, pix)
-            upd = r_new <= cfg.radius_update_ratio * r_old
+            upd = r_new <= RADIUS_UPDATE_RATIO * r_old
             a = torch.where(upd, w / (c + w).clamp_min(1e-12), 0.0)[:, None]
             p_old = take(store.pos, cslots)
             store.pos.index_copy_(0, cslots, p_old + a * (cam.to_world(q) - p_old))
@@ -342,7 +393,7 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
 
 
 def _associate_compiled(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measurement, vis,
-                        frame: int):
+                        frame: int, skip_covered: bool):
     """Free-space test, index map, association, merging and update by the compiled kernel
     (:func:`mapping.kernels.associate_and_update`, CPU); returns torch tensors
     ``(matched_pix, covered, free_kill, merge_kill, touched)`` and the counts ``decayed, n_visible``."""
@@ -354,20 +405,19 @@ def _associate_compiled(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: M
         np_(meas.fuse), np_(meas.free_depth),
         store.pos.numpy(), store.normal.numpy(), store.radius.numpy(), store.color.numpy(),
         store.conf.numpy(), store.t_last.numpy(), store.box_lo.numpy(), store.box_hi.numpy(), store.chunk_size,
-        np_(cam.R_cw), np_(cam.R_wc), np_(cam.t_wc), H, W, int(cfg.index_scale),
-        float(cfg.free_space_rel), float(cfg.free_space_mm), float(cfg.assoc_depth_rel),
-        float(cfg.assoc_depth_mm), math.cos(math.radians(cfg.assoc_normal_deg)),
-        float(cfg.assoc_conf_tie_rel), float(cfg.merge_radius_factor), float(cfg.stable_confidence),
-        float(cfg.free_space_decay), float(cfg.radius_update_ratio), float(cfg.max_confidence), int(frame),
-        bool(cfg.skip_covered), cam.f)
+        np_(cam.R_cw), np_(cam.R_wc), np_(cam.t_wc), H, W, int(INDEX_SCALE),
+        float(FREE_SPACE_REL), float(cfg.free_space_mm), float(ASSOC_DEPTH_REL),
+        float(ASSOC_DEPTH_MM), math.cos(math.radians(ASSOC_NORMAL_DEG)),
+        float(ASSOC_CONF_TIE_REL), float(MERGE_RADIUS_FACTOR), float(cfg.stable_confidence),
+        float(FREE_SPACE_DECAY), float(RADIUS_UPDATE_RATIO), float(cfg.max_confidence), int(frame),
+        bool(skip_covered), cam.f)
     matched_pix, covered, free_kill, merge_kill, touched, decayed, n_visible = out
     return (torch.from_numpy(matched_pix), torch.from_numpy(covered), torch.from_numpy(free_kill),
             torch.from_numpy(merge_kill), torch.from_numpy(touched), int(decayed), int(n_visible))
 
 
-def covered_pixels(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measurement, pix: torch.Tensor,
-                   u: torch.Tensor, v: torch.Tensor, ps: torch.Tensor, ns: torch.Tensor, radius: torch.Tensor,
-                   matched: torch.Tensor) -> torch.Tensor:
+def covered_pixels(cam: Camera, meas: Measurement, pix: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
+                   ps: torch.Tensor, ns: torch.Tensor, radius: torch.Tensor, matched: torch.Tensor) -> torch.Tensor:
     """``(HW,)`` bool: fusable pixels without a match that lie within half the radius (about a
     pixel) of a candidate centred in one of their 8 neighbours and pass the association tests
     against it (depth and normal).
@@ -375,7 +425,7 @@ def covered_pixels(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measur
     Association only pairs a pixel with the surfels whose centre falls inside it; about one pixel
     in eight of a mapped surface holds none (the centres are scattered), and each would add a
     duplicate surfel every frame.  Such a pixel is already represented by its neighbour's surfel
-    (the renderer shows that surfel there), so it adds nothing (``MapConfig.skip_covered``).
+    (the renderer shows that surfel there), so it adds nothing (:data:`SKIP_COVERED`).
 
     Args: the candidates (cell winners) - their pixel ``pix``, projected centre ``u, v``,
     camera-frame position ``ps`` and normal ``ns``, radius - and the matched pixels ``matched``.
@@ -387,7 +437,7 @@ def covered_pixels(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measur
     free[matched] = False
     pu, pv = pix % W, torch.div(pix, W, rounding_mode="floor")
     r_px2 = (0.5 * radius * cam.f / ps[:, 2]).square()      # half the radius: about one pixel
-    cos_thr = math.cos(math.radians(cfg.assoc_normal_deg))
+    cos_thr = math.cos(math.radians(ASSOC_NORMAL_DEG))
     covered = torch.zeros(HW, dtype=torch.bool, device=dev)
     for dy in (-1, 0, 1):
         for dx in (-1, 0, 1):
@@ -397,7 +447,7 @@ def covered_pixels(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measur
             inside = (nu >= 0) & (nu < W) & (nv >= 0) & (nv < H)
             p = nv.clamp(0, H - 1) * W + nu.clamp(0, W - 1)
             zm = take(meas.points, p)[:, 2]
-            tol = torch.clamp_min(cfg.assoc_depth_rel * zm, cfg.assoc_depth_mm)
+            tol = torch.clamp_min(ASSOC_DEPTH_REL * zm, ASSOC_DEPTH_MM)
             hit = (inside & take(free, p) & ((nu - u).square() + (nv - v).square() <= r_px2)
                    & ((ps[:, 2] - zm).abs() <= tol) & (_rowsum(ns * take(meas.normals, p)) >= cos_thr))
             covered[take(p, hit.nonzero().squeeze(1))] = True
@@ -409,7 +459,7 @@ def merge_redundant(store: SurfelStore, cfg: MapConfig, pix: torch.Tensor, ps: t
     """Merge matching candidates that were not chosen into their pixel's chosen surfel.
 
     A candidate passing the association tests but losing to a more confident surfel of the same
-    pixel is redundant when its centre lies within ``merge_radius_factor x min(radii)`` of the
+    pixel is redundant when its centre lies within ``MERGE_RADIUS_FACTOR x min(radii)`` of the
     winner (Keller et al. 2013, merging of similar points): the winner takes the confidence-weighted
     average of both and the sum of their confidences, the loser is removed.  Keeps the surfel
     count proportional to the observed area when the camera moves.
@@ -424,7 +474,7 @@ def merge_redundant(store: SurfelStore, cfg: MapConfig, pix: torch.Tensor, ps: t
     o_slots, b_slots = take(cslots, others), take(cslots, b)
     dd = take(ps, others) - take(ps, b)
     dist = torch.sqrt(_rowsum(dd * dd))
-    reach = cfg.merge_radius_factor * torch.minimum(take(store.radius, o_slots), take(store.radius, b_slots))
+    reach = MERGE_RADIUS_FACTOR * torch.minimum(take(store.radius, o_slots), take(store.radius, b_slots))
     sel = (dist <= reach).nonzero().squeeze(1)
     if sel.numel() == 0:
         return 0

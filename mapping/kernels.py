@@ -10,8 +10,7 @@ in a few loops that keep the intermediates in registers:
 - :func:`measure`: the per-pixel points, normals and radii of a frame;
 - :func:`cull_chunks` and :func:`visible_surfels`: view culling and the visible set;
 - :func:`splat_coefficients`, :func:`splat_front` and :func:`splat_blend`: the renderer's
-  per-surfel coefficients and two splatting passes (circular footprints; the exact-disc
-  footprint stays in torch).
+  per-surfel coefficients and two splatting passes.
 
 They are selected by ``MapConfig.kernels`` (``auto``: for a map on the CPU when numba is
 installed); the tests check that both paths give the same results.  The splatting kernels owe
@@ -104,8 +103,9 @@ def associate_and_update(vis_slots, vis_p, vis_u, vis_v,
             (the ``s x s`` cells of a pixel hold exactly the surfels whose centre falls in it, so
             the surfels are grouped by pixel and each pixel's cells are z-tested locally: no
             super-sampled buffer).
-        The rest: :class:`mapping.MapConfig` values (``cos_thr`` = cos of ``assoc_normal_deg``),
-        and ``f`` the mean focal length (for :func:`mapping.fusion.covered_pixels`).
+        The rest: the constants of :mod:`mapping.fusion` and :class:`mapping.MapConfig` values
+        (``cos_thr`` = cos of ``ASSOC_NORMAL_DEG``), ``skip_covered`` the fusion's switch and ``f``
+        the mean focal length (for :func:`mapping.fusion.covered_pixels`).
 
     Returns ``(matched_pix (HW,) bool, covered (HW,) bool, free_kill, merge_kill, touched (int64
     slots), n_decayed, n_visible)``: pixels fused into a surfel; unmatched pixels near a neighbour
@@ -355,8 +355,8 @@ def measure(depth, ok, w, rx, ry, fx, fy, max_jump_rel, min_cos, radius_factor,
         depth ``(H, W)`` float32 mm; ok ``(H, W)`` bool (valid depth with a weight above the
         threshold); w ``(H, W)`` float32 fusion weight; rx ``(W,)``, ry ``(H,)`` float32
         normalised image coordinates of the pixel centres; fx, fy; max_jump_rel
-        (``normal_max_jump_rel``), min_cos (``radius_min_cos``), radius_factor
-        (``radius_scale * sqrt(2) / f``).
+        (``NORMAL_MAX_JUMP_REL``), min_cos (``RADIUS_MIN_COS``), radius_factor
+        (``RADIUS_SCALE * sqrt(2) / f``) of :mod:`mapping.fusion`.
         Outputs (flattened ``H*W``), written: points ``(HW, 3)``, normals ``(HW, 3)``, radius,
         weight, fuse (bool), free_depth.
 
@@ -506,13 +506,13 @@ def cull_chunks(box_lo, box_hi, R_cw, t_cw, near, far, xmin, xmax, ymin, ymax):
 def splat_coefficients(slots, p, u, v, normal, radius, conf, R_cw, fx, fy, cx, cy, f, q_scale, min_cos,
                        splat_round, hmax, stable_conf, inv_k, pad, Wp,
                        n_out, conf_out, coef, half, base, stab, root):
-    """The per-surfel quantities of :func:`mapping.render.splat` (circular footprints) in one loop.
+    """The per-surfel quantities of :func:`mapping.render.splat` in one loop.
 
     Args:
         slots ``(V,)`` int64, p ``(V, 3)`` camera-frame positions, u, v ``(V,)`` projected centres:
             the visible set; normal ``(N, 3)``, radius, conf ``(N,)``: the store's arrays.
         R_cw ``(3, 3)``; fx, fy, cx, cy, f: the camera; q_scale: quantised inverse depth per 1/mm;
-        min_cos (``render_min_cos``), splat_round, hmax (``splat_max_half``), stable_conf, inv_k
+        min_cos (``RENDER_MIN_COS``), splat_round (``SPLAT_ROUND``), hmax (``SPLAT_MAX_HALF``), stable_conf, inv_k
         (``1 / k`` of the blending kernel); pad, Wp: the padded buffer.
         Outputs ``(V,)`` unless said: n_out ``(V, 3)`` camera-frame normals, conf_out, coef ``(7,
         V)`` (rows as :func:`splat_front`), half, base (int64), stab, root (the confidence
@@ -592,7 +592,7 @@ def _splat_front_entries(buf, Wp, b, h, i, t0, tx, ty, g, l0, l1, l2, st, q_max)
 
 @_jit_simd
 def splat_front(buf, Wp, order, base, half, coef, stab, q_max):
-    """Pass 1 of :func:`mapping.render.splat` (circular footprints): z-buffer the surfels ``order``.
+    """Pass 1 of :func:`mapping.render.splat`: z-buffer the surfels ``order``.
 
     Args:
         buf ``(Hp * Wp,)`` int64 padded z-buffer, edited: per pixel the largest key
@@ -647,19 +647,18 @@ def _splat_blend_entries(acc, Wp, b, h, t0, tx, ty, g, l0, l1, l2, st, cq, k_pow
                 for _ in range(k_pow - 1):
                     w *= x
             acc[p, 0] += w
-            acc[p, 1] += w * q
-            acc[p, 2] += w * r
-            acc[p, 3] += w * gr
-            acc[p, 4] += w * bl
+            acc[p, 1] += w * r
+            acc[p, 2] += w * gr
+            acc[p, 3] += w * bl
 
 
 @_jit_simd
 def splat_blend(acc, Wp, order, base, half, coef, stab, weight_root, k_pow, thr, colors):
-    """Pass 2 of :func:`mapping.render.splat` (circular footprints): blend the front surface.
+    """Pass 2 of :func:`mapping.render.splat`: blend the colour of the front surface.
 
     Args:
-        acc ``(Hp * Wp, 5)`` float32, edited: per pixel the sums of the weights ``w``, ``w q``
-            (quantised inverse depth) and ``w r, w g, w b`` (pixel-interleaved: one cache line).
+        acc ``(Hp * Wp, 4)`` float32, edited: per pixel the sums of the weights ``w`` and
+            ``w r, w g, w b`` (pixel-interleaved: one cache line).
         Wp, order, base, half, coef, stab: as :func:`splat_front`.
         weight_root ``(V,)`` float32 k-th root of each surfel's confidence factor; k_pow the
             kernel exponent: ``w = (t * weight_root)^k`` for entries in front.

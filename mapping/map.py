@@ -6,9 +6,9 @@ import torch
 
 from . import export
 from .config import MapConfig
-from .fusion import _Timer, fuse_frame, measure
+from .fusion import MIN_FUSE_WEIGHT, SKIP_COVERED, _Timer, fuse_frame, measure
 from .render import Camera, ModelView, render
-from .surfels import SurfelStore
+from .surfels import CHUNK_SIZE, COMPACT_FRACTION, INITIAL_CAPACITY, SurfelStore
 
 
 class SurfelMap:
@@ -18,21 +18,35 @@ class SurfelMap:
     depth ``(H, W)`` float32 mm (0 = invalid), colour ``(3, H, W)`` in [0, 1].
 
     Args:
-        config: the tunables (:class:`MapConfig`); defaults when None.
+        config: the user settings (:class:`MapConfig`); defaults when None.
         device: torch device every tensor lives on.
+        capacity, chunk_size, compact_fraction: the store's initial capacity, surfels per spatial
+            chunk and compaction threshold (:class:`SurfelStore`; defaults
+            :data:`mapping.surfels.INITIAL_CAPACITY`, ``CHUNK_SIZE``, ``COMPACT_FRACTION``).
+        skip_covered: unmatched pixels on a neighbour's disc add no surfel
+            (:data:`mapping.fusion.SKIP_COVERED`).
+        min_fuse_weight: pixels of fusion weight at most this are not fused
+            (:data:`mapping.fusion.MIN_FUSE_WEIGHT`).
 
     Attributes:
         profile: when True, ``fuse`` and ``render`` record milliseconds per stage in
             ``last_timings`` (synchronising the device; off by default).
     """
 
-    def __init__(self, config: MapConfig | None = None, device: str | torch.device = "cpu") -> None:
+    def __init__(self, config: MapConfig | None = None, device: str | torch.device = "cpu", *,
+                 capacity: int = INITIAL_CAPACITY, chunk_size: int = CHUNK_SIZE,
+                 compact_fraction: float = COMPACT_FRACTION, skip_covered: bool = SKIP_COVERED,
+                 min_fuse_weight: float = MIN_FUSE_WEIGHT) -> None:
         self.config = config if config is not None else MapConfig()
         self.config.validate()
+        if not 0 <= min_fuse_weight < 1:
+            raise ValueError("SurfelMap: min_fuse_weight must be in [0, 1)")
         self.device = torch.device(device)
-        c = self.config
-        self.store = SurfelStore(c.initial_capacity, c.chunk_size, c.growth_factor, c.compact_fraction,
-                                 self.device)
+        self._options = dict(capacity=capacity, chunk_size=chunk_size, compact_fraction=compact_fraction,
+                             skip_covered=skip_covered, min_fuse_weight=min_fuse_weight)
+        self.skip_covered = bool(skip_covered)
+        self.min_fuse_weight = float(min_fuse_weight)
+        self.store = SurfelStore(capacity, chunk_size, compact_fraction=compact_fraction, device=self.device)
         self.profile = False
         self.last_timings: dict[str, float] = {}
         self.frames_fused = 0
@@ -54,9 +68,10 @@ class SurfelMap:
         timer = _Timer(self.profile, self.device)
         H, W = depth.shape[-2:]
         cam = Camera.make(K, T_wc, H, W, self.device)
-        meas = measure(depth, color, cam, self.config, weight, valid)
+        meas = measure(depth, color, cam, self.config, weight, valid, min_fuse_weight=self.min_fuse_weight)
         timer.lap("measure")
-        stats = fuse_frame(self.store, self.config, cam, meas, int(frame_index), timer)
+        stats = fuse_frame(self.store, self.config, cam, meas, int(frame_index), timer,
+                           skip_covered=self.skip_covered)
         self.frames_fused += 1
         if self.profile:
             self.last_timings = dict(timer.times)
@@ -64,11 +79,11 @@ class SurfelMap:
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the kernels the fusion and the renderer use, by
-        fusing and rendering a small plane in a throwaway map with this map's config and device.
+        fusing and rendering a small plane in a throwaway map with this map's settings and device.
         The first call of a compiled kernel otherwise stalls the first frame by about half a second
         (importing numba, loading the machine code); runs call this before their clock starts.
         This map is not touched."""
-        scratch = SurfelMap(self.config, self.device)
+        scratch = SurfelMap(self.config, self.device, **self._options)
         H, W = 24, 32
         K = torch.tensor([[30.0, 0.0, 16.0], [0.0, 30.0, 12.0], [0.0, 0.0, 1.0]])
         depth = torch.full((H, W), 0.5 * (self.config.min_depth_mm + self.config.max_depth_mm), device=self.device)
@@ -123,7 +138,7 @@ class SurfelMap:
     def save_mesh(self, path, scale: float = 1e-3, depth: int = 8) -> int:
         """Mesh the stable points (Poisson of octree ``depth``, density/distance trimmed; ball
         pivoting fallback) and write it to ``path``; returns the triangle count."""
-        return export.save_mesh(self.points(True), path, self.config, scale, depth)
+        return export.save_mesh(self.points(True), path, scale, depth)
 
     def __repr__(self) -> str:
         return (f"SurfelMap({len(self)} surfels, {self.num_stable()} stable, "

@@ -15,6 +15,20 @@ import torch
 
 _INF = float("inf")
 
+# surfel slots allocated up front (the store grows geometrically beyond them)
+INITIAL_CAPACITY = 1 << 16
+# capacity growth factor when the store is full (geometric growth: amortised O(1) appends)
+GROWTH_FACTOR = 2.0
+# surfels per spatial chunk; each chunk keeps a bounding box so that view culling touches only the
+# chunks inside the frustum (cost follows the visible surfels); at least 64
+CHUNK_SIZE = 256
+# the store is compacted (removed slots squeezed out, order kept) once this fraction of its slots
+# are dead, in (0, 1]
+COMPACT_FRACTION = 0.25
+# cell size (mm) of the Z-order curve along which surfels past their unstable window are
+# re-ordered in blocks (compact chunks, tight culling); 0 disables the re-ordering
+SORT_CELL_MM = 1.0
+
 
 def take(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """``x[idx]`` along dim 0 for an int64 index (``index_select``: much faster than ``x[idx]`` on CPU)."""
@@ -59,8 +73,12 @@ class SurfelStore:
 
     FIELDS = ("pos", "normal", "radius", "color", "conf", "t_init", "t_last", "alive")
 
-    def __init__(self, capacity: int = 1 << 16, chunk_size: int = 4096, growth_factor: float = 2.0,
-                 compact_fraction: float = 0.25, device: str | torch.device = "cpu") -> None:
+    def __init__(self, capacity: int = INITIAL_CAPACITY, chunk_size: int = CHUNK_SIZE,
+                 growth_factor: float = GROWTH_FACTOR, compact_fraction: float = COMPACT_FRACTION,
+                 device: str | torch.device = "cpu") -> None:
+        if int(capacity) < 1 or int(chunk_size) < 64 or growth_factor <= 1 or not 0 < compact_fraction <= 1:
+            raise ValueError("SurfelStore: need capacity >= 1, chunk_size >= 64, growth_factor > 1 and "
+                             "compact_fraction in (0, 1]")
         self.device = torch.device(device)
         self.chunk_size = int(chunk_size)
         self.growth_factor = float(growth_factor)

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from mapping import MapConfig, ModelView, SurfelMap, kernels
+from mapping import MapConfig, ModelView, SurfelMap, fusion, kernels
+from mapping import render as render_module
 from mapping.fusion import measure
-from mapping.render import Camera, cull_chunks, visible_set
+from mapping.render import FAR_MM, NEAR_MM, Camera, cull_chunks, render, visible_set
 from mapping.config import MapConfigError
 
 H, W = 128, 160
@@ -93,13 +94,12 @@ def flat(depth_mm, h=H, w=W):
 
 
 # ------------------------------------------------------------------ accuracy
-@pytest.mark.parametrize("exact_discs", [False, True])
-def test_novel_view_depth_accuracy(exact_discs):
+def test_novel_view_depth_accuracy():
     """Exact depth fused from 20 poses, rendered at an unseen nearby pose: sub-0.2 mm depth."""
     torch.manual_seed(0)
     K = intrinsics()
     poses = ring_poses()
-    m = SurfelMap(MapConfig(render_exact_discs=exact_discs))
+    m = SurfelMap(MapConfig())
     for i, T in enumerate(poses):
         depth, color, _ = ray_cast(T, K)
         stats = m.fuse(depth, color, K, T, i)
@@ -285,9 +285,9 @@ def test_unstable_surfels_expire():
 
 # ------------------------------------------------------------------ store mechanics
 def test_capacity_growth_compaction_and_culling():
-    cfg = MapConfig(initial_capacity=1000, chunk_size=256, compact_fraction=0.1)
+    compact_fraction = 0.1
     K = intrinsics()
-    m = SurfelMap(cfg)
+    m = SurfelMap(MapConfig(), capacity=1000, chunk_size=256, compact_fraction=compact_fraction)
     for i, T in enumerate(ring_poses(8)):
         depth, color, _ = ray_cast(T, K)
         m.fuse(depth, color, K, T, i)
@@ -297,19 +297,19 @@ def test_capacity_growth_compaction_and_culling():
         m.fuse(far, color, K, np.eye(4), i)
     st = m.store
     st.maybe_compact()                                   # (fusion runs it before each frame)
-    assert st.num_dead < cfg.compact_fraction * max(st.n, 1) + 1
+    assert st.num_dead < compact_fraction * max(st.n, 1) + 1
     assert int(st.alive[: st.n].sum()) == len(m)
     assert not st.alive[st.n:].any()
     # chunk culling finds exactly the surfels a brute-force projection finds
     for T in [np.eye(4), pose([20.0, 10.0, 0.0], [0.1, -0.2, 0.3]), pose([0.0, 0.0, 0.0], [0.0, math.pi, 0.0])]:
         cam = Camera.make(K, T, H, W, st.device)
-        vis = visible_set(st, cam, cfg.near_mm, cfg.far_mm, margin_px=2.0)
+        vis = visible_set(st, cam, NEAR_MM, FAR_MM, margin_px=2.0)
         idx = st.alive[: st.n].nonzero().squeeze(1)
         p = cam.to_cam(st.pos[idx])
         z = p[:, 2]
         u = p[:, 0] / z.clamp_min(1e-6) * K[0, 0] + K[0, 2]
         v = p[:, 1] / z.clamp_min(1e-6) * K[1, 1] + K[1, 2]
-        ok = ((z >= cfg.near_mm) & (z <= cfg.far_mm) & (u >= -2.5) & (u < W + 1.5) & (v >= -2.5) & (v < H + 1.5))
+        ok = ((z >= NEAR_MM) & (z <= FAR_MM) & (u >= -2.5) & (u < W + 1.5) & (v >= -2.5) & (v < H + 1.5))
         assert set(vis.slots.tolist()) == set(idx[ok].tolist())
 
 
@@ -401,10 +401,9 @@ def test_config_validation():
         MapConfig(min_depth_mm=300.0)
     with pytest.raises(MapConfigError):
         MapConfig.from_dict({"no_such_key": 1})
-    cfg = MapConfig.from_dict({"stable_confidence": "4", "unstable_window": 30, "render_depth": "blended",
-                               "kernels": "torch"})
+    cfg = MapConfig.from_dict({"stable_confidence": "4", "unstable_window": 30, "kernels": "torch"})
     assert cfg.stable_confidence == 4.0 and cfg.unstable_window == 30
-    assert cfg.render_depth == "blended" and cfg.kernels == "torch"
+    assert cfg.kernels == "torch"
     with pytest.raises(MapConfigError, match="kernels"):
         MapConfig(kernels="fast")
 
@@ -455,8 +454,8 @@ def test_compiled_measurements_equal_torch():
     depth[70:75, 10:20] = float("nan")
     weight = torch.rand(depth.shape, generator=g)
     cam = Camera.make(K, T, H, W, torch.device("cpu"))
-    a = measure(depth, color, cam, MapConfig(kernels="torch", min_fuse_weight=0.1), weight)
-    b = measure(depth, color, cam, MapConfig(kernels="compiled", min_fuse_weight=0.1), weight)
+    a = measure(depth, color, cam, MapConfig(kernels="torch"), weight, min_fuse_weight=0.1)
+    b = measure(depth, color, cam, MapConfig(kernels="compiled"), weight, min_fuse_weight=0.1)
     assert 0.2 < a.fuse.float().mean() < 0.9        # holes, low weights and depth jumps excluded
     assert torch.equal(a.fuse, b.fuse)
     for f in ("points", "normals", "radius", "weight", "color", "free_depth"):
@@ -497,18 +496,21 @@ def test_compiled_fusion_builds_the_same_map_as_torch():
     assert dc.mean() < 2e-3
 
 
-@pytest.mark.parametrize("overrides", [{}, {"render_depth": "blended", "radius_scale": 2.0},
-                                       {"render_cull_hidden_unstable": False, "render_blend_sigma": 0.5}])
-def test_compiled_splatting_equals_torch(overrides):
+@pytest.mark.parametrize("constants, render_kw", [
+    ({}, {}),
+    ({(fusion, "RADIUS_SCALE"): 2.0}, {}),
+    ({(render_module, "RENDER_BLEND_SIGMA"): 0.5}, {"cull_hidden_unstable": False})],
+    ids=["defaults", "radius_scale_2", "no_culling_sigma_0.5"])
+def test_compiled_splatting_equals_torch(constants, render_kw, monkeypatch):
     """The compiled splatting passes render what the torch passes render: noisy depth (stable and
     unstable surfels, oblique discs), footprints of 1x1 to 7x7 pixels, colour now or on demand."""
     from dataclasses import replace
 
-    from mapping.render import render
-
+    for (module, name), value in constants.items():
+        monkeypatch.setattr(module, name, value)
     K = intrinsics()
     g = torch.Generator().manual_seed(3)
-    m = SurfelMap(MapConfig(kernels="torch", **overrides))
+    m = SurfelMap(MapConfig(kernels="torch"))
     for i, T in enumerate(ring_poses(10)):
         depth, color, _ = ray_cast(T, K)
         m.fuse(depth + 0.1 * torch.randn(depth.shape, generator=g), color, K, T, i)
@@ -517,7 +519,8 @@ def test_compiled_splatting_equals_torch(overrides):
     for T in (pose([1.0, 2.0, 0.5], [0.02, -0.02, 0.3]), pose([0.0, 0.0, 35.0], [0.2, 0.1, 0.0])):   # near: 3-7 px footprints
         views = {}
         for mode in ("torch", "compiled"):
-            view, _ = render(m.store, replace(m.config, kernels=mode), K, T, H, W, colour=False)
+            view, _ = render(m.store, replace(m.config, kernels=mode), K, T, H, W, colour=False,
+                             **render_kw)
             views[mode] = view.with_colour()
         a, b = views["torch"], views["compiled"]
         assert a.valid.float().mean() > 0.4
@@ -533,7 +536,7 @@ def test_compiled_splatting_equals_torch(overrides):
 
 def test_compiled_culling_and_visible_set_equal_torch():
     K = intrinsics()
-    m = SurfelMap(MapConfig(kernels="torch", chunk_size=64))
+    m = SurfelMap(MapConfig(kernels="torch"), chunk_size=64)
     for i, T in enumerate(ring_poses(8)):
         depth, color, _ = ray_cast(T, K)
         m.fuse(depth, color, K, T, i)
@@ -567,15 +570,14 @@ def test_hidden_unstable_surfels_are_not_splatted_and_the_view_keeps_its_surface
     T = pose([1.0, 0.5, 0.0])
     depth, color, _ = ray_cast(T, K)
     # a frame whose normals disagree with the map: nothing associates, all of it is new and unstable
-    m.config.assoc_normal_deg = 1e-3
-    m.fuse(depth + 0.2 * torch.randn(depth.shape, generator=g), color, K, T, 8)
-    m.config.assoc_normal_deg = 35.0
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(fusion, "ASSOC_NORMAL_DEG", 1e-3)
+        m.fuse(depth + 0.2 * torch.randn(depth.shape, generator=g), color, K, T, 8)
     conf = m.store.conf[: m.store.n]
     assert (conf[m.store.alive[: m.store.n]] < 3.0).sum() > 0.5 * H * W
     views = {}
     for cull in (True, False):
-        m.config.render_cull_hidden_unstable = cull
-        views[cull] = m.render(K, T, H, W)
+        views[cull] = render(m.store, m.config, K, T, H, W, cull_hidden_unstable=cull)[0]
     a, b = views[True], views[False]
     stable = b.confidence >= 3.0
     assert stable.float().mean() > 0.8
@@ -588,8 +590,7 @@ def test_hidden_unstable_surfels_are_not_splatted_and_the_view_keeps_its_surface
     fresh.fuse(depth, color, K, T, 0)
     views = {}
     for cull in (True, False):
-        fresh.config.render_cull_hidden_unstable = cull
-        views[cull] = fresh.render(K, T, H, W)
+        views[cull] = render(fresh.store, fresh.config, K, T, H, W, cull_hidden_unstable=cull)[0]
     assert views[True].valid.float().mean() > 0.95
     assert torch.equal(views[True].depth, views[False].depth)
 
@@ -602,7 +603,7 @@ def test_pixels_on_a_neighbours_disc_add_no_duplicate(kernels_mode):
     K = intrinsics()
     added = {}
     for skip in (True, False):
-        m = SurfelMap(MapConfig(kernels=kernels_mode, skip_covered=skip))
+        m = SurfelMap(MapConfig(kernels=kernels_mode), skip_covered=skip)
         g = torch.Generator().manual_seed(7)
         stats = []
         for i in range(8):
