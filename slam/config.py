@@ -31,20 +31,17 @@ class TrackingConfig:
         flow_reference: in frame2model, the image the temporal flow is computed against:
             ``rendered`` (the model's colour relit to the last frame's shading, as the paper:
             the flow then ties the new frame to the map itself, which holds the pose to the
-            surface seen before), ``last_frame`` (the last real frame, at the reference pose;
+            surface seen before) or ``last_frame`` (the last real frame, at the reference pose;
             less noisy per frame, but it hands each frame's pose error on to the next: only
-            the depth comes from the map) or ``chained`` (the last frame, then on into the
-            model view by ``chain_gain`` x the smoothed flow last frame -> model view).
-            ``tools/benchmark_frame2model.py`` compares them.
-        chain_gain: the fraction of the last frame's measured offset from the map removed per
-            frame with ``flow_reference: chained`` (below 1: the render's flow noise is damped).
+            the depth comes from the map; 0.554 against 0.242 mm on the rigid and loop
+            sequences of ``tools/benchmark_frame2model.py``).
         refine_passes: frame2model: after tracking against the model view at the last pose,
             render the model at the new estimate and track the frame against that view again,
             this many times (ElasticFusion re-associates at each iteration's pose). The view is
             then nearly at the frame's pose: short flow, the same parts of the surface seen, no
             disocclusions. Each pass costs a colour render, a flow, the weights and a solve
-            (one pass: frame2model ATE -19 % at 0.74x the fps on the synthetic rigid and loop
-            sequences; two passes tracked worse than one; README, "Refinement passes").
+            (one pass: frame2model ATE -13 % at 0.7x the fps on the synthetic rigid and loop
+            sequences; two passes tracked worse than one; docs/experiments.md).
         min_model_coverage: below this fraction of the last frame's valid pixels covered by the
             model view, the previous frame is the reference for that step (the start, fast
             motion). A partly covered view is filled with the last frame's pixels, which sit at
@@ -54,30 +51,20 @@ class TrackingConfig:
             median, clamped to 1; pixels the tracker could not weigh count fully, see
             ``slam.pipeline.normalised_fusion_weight``; uniform without learned weights) or
             ``uniform`` (every valid pixel counts fully: better on rigid scenes, worse where tissue
-            deforms; README, frame2model section).
-        fuse_exposure: ``normalised`` (each frame's colour is fused at the first frame's mean
-            brightness, ``slam.pipeline.exposure_gain``: the map's colour stays one exposure
-            through exposure jumps, and the render is relit to the current frame's shading
-            anyway) or ``as_seen`` (fused as captured: a few frames at a quarter of the brightness
-            left dark patches in the map that the flow against the render could not match: 2x
-            the ATE on the synthetic scanning sequence of ``tests/test_exposure.py``).
+            deforms; docs/experiments.md).
         export_map: fuse a map in frame2frame too (without tracking against it) and export it.
         poses: ``estimated`` (track) or ``groundtruth``: take the dataset's ground-truth poses
             and fuse the map with them (mapping on its own, e.g. to measure the map's accuracy
             apart from tracking); needs ground truth, implies ``export_map``. With learned
             weights each frame is still matched to the previous one, for its w3D fusion weight.
-        stereo_ahead: compute the next frame's stereo depth in the read-ahead thread while the
-            current frame is tracked (it depends on the frame alone; OpenCV and torch release
-            the GIL, so on two cores the two overlap). Same results either way; off, or with a
-            correspondence backend whose temporal and stereo flow are one model (RAFT), the
-            view is made in the main thread. The per-stage ``stereo`` time is then spent in the
-            thread and ``read`` is what the main thread waited for.
-        flow_ahead: with ``stereo_ahead``, the read-ahead thread also computes the next frame's
-            temporal flow against the frame before it, wherever tracking will flow against the
-            previous frame (frame2frame; frame2model with ``flow_reference`` ``last_frame`` or
-            ``chained``; ``poses: groundtruth`` with a learned w3D): it depends on the two
-            frames alone. Same results either way (the flow is taken only when the reference
-            is that frame); its time is the ``flow_ahead`` stage, spent in the thread.
+        read_ahead: make the next frame's view (stereo depth) in a read-ahead thread while the
+            current frame is tracked, and its temporal flow against the frame before it wherever
+            tracking will flow against the previous frame (both depend on the frames alone;
+            OpenCV and torch release the GIL, so on two cores the two threads overlap). Same
+            results either way. With a backend whose temporal and stereo flow are one model
+            (RAFT) the view is made in the main thread. The per-stage ``stereo`` and
+            ``flow_ahead`` times are then spent in the thread and ``read`` is what the main
+            thread waited for.
         keyframe_gap: frame2frame: a tracked frame becomes the reference (keyframe) of the
             frames after it once it is this many frames after the current keyframe; the frames
             in between are tracked against the keyframe, not against the frame before them. 1
@@ -87,8 +74,8 @@ class TrackingConfig:
             the reference stands further from the current frame (the tissue's motion in between
             rises above the depth noise); the networks are trained on pairs 1-5 frames apart.
             The depth filter (``depth.temporal_gain``) still runs from each frame to the one
-            before it. A failed frame makes the last tracked frame the keyframe. README,
-            "Keyframe reference".
+            before it. A failed frame makes the last tracked frame the keyframe
+            (docs/experiments.md).
         keyframe_still_mm: > 0: keep a keyframe only while the camera is still, i.e. while the
             last tracked motion moved it less than this (mm per frame, as
             ``depth.temporal_still_mm``): a moving camera's frames are each tracked against the
@@ -97,15 +84,12 @@ class TrackingConfig:
 
     mode: str = "frame2frame"
     flow_reference: str = "rendered"
-    chain_gain: float = 0.25
     refine_passes: int = 0
     min_model_coverage: float = 0.95
     fuse_weight: str = "w3d"
-    fuse_exposure: str = "normalised"
     export_map: bool = False
     poses: str = "estimated"
-    stereo_ahead: bool = True
-    flow_ahead: bool = True
+    read_ahead: bool = True
     keyframe_gap: int = 5
     keyframe_still_mm: float = 0.1
 
@@ -136,10 +120,10 @@ class SlamConfig:
     Attributes:
         device: torch device of the VO and the map (``cpu``, ``cuda``, ...).
         threads: torch threads during a run (restored afterwards). 0 = every core but the one
-            the read-ahead thread computes the next frame's stereo on (``tracking.stereo_ahead``),
-            at least 1; without it, torch's default. On this project's 2-core machine 1 torch
-            thread with the stereo ahead runs 10.1 / 7.7 fps (frame2frame / frame2model, 320x256)
-            where 2 threads ran 8.7 / 6.1 (README, benchmarks).
+            the read-ahead thread computes the next frame's stereo on (``tracking.read_ahead``),
+            at least 1; without it, torch's default. On a 2-core machine 1 torch thread with the
+            stereo ahead ran 10.1 / 7.7 fps (frame2frame / frame2model, 320x256) where 2 threads
+            ran 8.7 / 6.1.
     """
 
     device: str = "cpu"
@@ -174,9 +158,8 @@ CHOICES = {
     "weights.mode": ("learned", "constant"),
     "weights.residuals": ("2d3d", "2d", "3d"),
     "tracking.mode": ("frame2frame", "frame2model"),
-    "tracking.flow_reference": ("last_frame", "rendered", "chained"),
+    "tracking.flow_reference": ("last_frame", "rendered"),
     "tracking.fuse_weight": ("w3d", "uniform"),
-    "tracking.fuse_exposure": ("normalised", "as_seen"),
     "tracking.poses": ("estimated", "groundtruth"),
 }
 
@@ -287,13 +270,9 @@ def validate(config: SlamConfig) -> None:
         (config.depth.max_depth_mm > config.depth.min_depth_mm > 0, "depth: need 0 < min_depth_mm < max_depth_mm"),
         (config.solver.max_iters >= 1, "solver.max_iters must be >= 1"),
         (config.solver.robust_3d_mm >= 0, "solver.robust_3d_mm must be >= 0 (0 = off)"),
-        (config.solver.robust_3d_model_mm >= 0, "solver.robust_3d_model_mm must be >= 0 (0 = off)"),
-        (config.solver.kernel in ("torch", "compiled", "auto"), "solver.kernel must be torch, compiled or auto"),
-        (config.weights.downscale >= 1, "weights.downscale must be >= 1"),
         (config.data.width >= 0 and config.data.height >= 0, "data.width/height must be >= 0"),
         ((config.data.width == 0) == (config.data.height == 0), "data.width and data.height: set both or neither"),
         (0.0 <= config.tracking.min_model_coverage <= 1.0, "tracking.min_model_coverage must be in [0, 1]"),
-        (0.0 <= config.tracking.chain_gain <= 1.0, "tracking.chain_gain must be in [0, 1]"),
         (0 <= config.tracking.refine_passes <= 5, "tracking.refine_passes must be in 0..5"),
         (config.tracking.keyframe_gap >= 1, "tracking.keyframe_gap must be >= 1 (1 = every frame against the previous one)"),
         (config.tracking.keyframe_still_mm >= 0, "tracking.keyframe_still_mm must be >= 0 (0 = keyframes for a moving camera too)"),
@@ -301,8 +280,6 @@ def validate(config: SlamConfig) -> None:
         (0.0 < config.depth.temporal_gain <= 1.0, "depth.temporal_gain must be in (0, 1] (1 = off)"),
         (config.depth.temporal_gate_mm > 0, "depth.temporal_gate_mm must be > 0"),
         (config.depth.temporal_still_mm >= 0, "depth.temporal_still_mm must be >= 0 (0 = filter every frame)"),
-        (0.0 <= config.depth.temporal_velocity_gain < 1.0,
-         "depth.temporal_velocity_gain must be in [0, 1) (0 = no velocity state)"),
     ]
     for ok, message in checks:
         if not ok:

@@ -40,7 +40,6 @@ from vo.lie import se3_exp, se3_log
 from vo.odometry import StereoOdometry, View, VOConfig
 from vo.residuals import PoseProblem
 from vo.weights import (IN_CHANNELS, INPUT_VERSION, WeightInputs, WeightNetworks, load_weight_networks,
-                        uses_map_depth, uses_motion_memory, uses_rigid_flow,
                         network_inputs, sample_weights)
 
 log = logging.getLogger("slam.train")
@@ -70,7 +69,6 @@ class TrainDataConfig:
             frame2model tracks against; trains the networks of ``weights.checkpoint_model``).
         min_model_coverage: ``model``: a pair whose render covers less of the reference frame's
             valid pixels is left out (tracking falls back to the previous frame there).
-        fuse_exposure: ``model``: the colour fused into the map (``tracking.fuse_exposure``).
         chain_length: 1: independent pairs (eq. 7 per pair). ``L > 1``: the pairs come in chains of
             ``L`` consecutive frame pairs (one frame apart, as frame2frame tracks) and the loss of
             eq. 7 is taken on the chain's composed pose: the per-pair loss weighs each pair's
@@ -100,7 +98,6 @@ class TrainDataConfig:
     breathing_follows_tissue: float = 0.0
     reference: str = "frame"
     min_model_coverage: float = 0.95
-    fuse_exposure: str = "normalised"
     chain_length: int = 1
 
 
@@ -124,20 +121,6 @@ class OptimConfig:
         init: a checkpoint to start from instead of a random initialisation (fine-tuning, e.g. on
             other data or another reference kind); its residuals, input layout, width and
             downscale must be the config's.
-        balance: how the pairs' losses are averaged. ``none``: the mean over all pairs (eq. 7);
-            scenarios with large pose errors (deforming, breathing) then dominate the gradient.
-            ``constant``: each pair's loss is divided by the mean loss of the constant weights
-            ``balance_weights`` over its scenario's training pairs, so every scenario counts by
-            how its error compares with the constant balance there; early stopping then follows
-            the mean over scenarios of (validation loss / the constant's validation loss). A
-            pair's scenario is its sequence folder's name up to the first underscore (the
-            synthetic sequences' scenario).
-        balance_weights: ``(w2D, w3D)`` of the constant reference of ``balance: constant``.
-        link_weight: ``data.chain_length`` > 1: each chain's loss also counts eq. 7 on its links,
-            ``chain + link_weight * mean over links |p*_k - p_gt_k|_1`` (training and the
-            validation objective), meant to learn the chain's shared bias without giving up each
-            pair's accuracy; measured with 4 and 16 it did not bring that accuracy back (README,
-            "Chains and their links"). 0 (the default) is the chain loss alone.
     """
 
     epochs: int = 40
@@ -150,9 +133,6 @@ class OptimConfig:
     grad_tol: float = 1e-3
     threads: int = 0
     init: str = ""
-    balance: str = "none"
-    balance_weights: list = field(default_factory=lambda: [1.0, 0.01])
-    link_weight: float = 0.0
 
 
 @dataclass
@@ -171,10 +151,8 @@ class TrainConfig:
     # the networks tracking uses on a still camera's filtered depth; README, "Temporal depth filter")
     depth: DepthConfig = field(default_factory=lambda: DepthConfig(temporal_gain=1.0, temporal_still_mm=0.0))
     map: MapConfig = field(default_factory=MapConfig)    # the model references' map (data.reference: model)
-    # the declarative layer needs a true minimum: no early stop on a flat cost, tight step tolerance;
-    # torch's normal equations, with which the shipped checkpoints were trained (reproducible)
-    solver: SolverConfig = field(default_factory=lambda: SolverConfig(max_iters=25, step_tol=1e-12, cost_rtol=0.0,
-                                                                         kernel="torch"))
+    # the declarative layer's forward solve (its tolerance: vo.solver.DECLARATIVE)
+    solver: SolverConfig = field(default_factory=lambda: SolverConfig(max_iters=25))
 
 
 def load_train_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:
@@ -196,29 +174,16 @@ def load_train_config(path: str | Path, overrides: list[str] | None = None) -> T
         raise ConfigError(f"{path}: 'residuals' must be one of 2d3d, 2d, 3d")
     if cfg.data.reference not in ("frame", "model"):
         raise ConfigError(f"{path}: 'data.reference' must be frame or model")
-    if cfg.data.fuse_exposure not in ("normalised", "as_seen"):
-        raise ConfigError(f"{path}: 'data.fuse_exposure' must be normalised or as_seen")
     try:
         cfg.map.validate()
     except ValueError as err:
         raise ConfigError(f"{path}: {err}") from None
     if cfg.optim.split not in ("sequence", "pair"):
         raise ConfigError(f"{path}: 'optim.split' must be sequence or pair")
-    if cfg.optim.balance not in ("none", "constant"):
-        raise ConfigError(f"{path}: 'optim.balance' must be none or constant")
-    if (len(cfg.optim.balance_weights) != 2 or not all(isinstance(w, (int, float)) for w in cfg.optim.balance_weights)
-            or min(cfg.optim.balance_weights) < 0 or max(cfg.optim.balance_weights) <= 0):
-        raise ConfigError(f"{path}: 'optim.balance_weights' must be two non-negative numbers [w2D, w3D], not both 0")
     if not isinstance(cfg.data.chain_length, int) or cfg.data.chain_length < 1:
         raise ConfigError(f"{path}: 'data.chain_length' must be a whole number >= 1")
-    if cfg.data.chain_length > 1 and cfg.optim.balance != "none":
-        raise ConfigError(f"{path}: 'data.chain_length' > 1 needs 'optim.balance: none'")
     if cfg.data.chain_length > 1 and cfg.data.reference != "frame":
         raise ConfigError(f"{path}: 'data.chain_length' > 1 needs 'data.reference: frame' (frame2frame chains)")
-    if not isinstance(cfg.optim.link_weight, (int, float)) or cfg.optim.link_weight < 0:
-        raise ConfigError(f"{path}: 'optim.link_weight' must be a number >= 0")
-    if cfg.optim.link_weight > 0 and cfg.data.chain_length == 1:
-        raise ConfigError(f"{path}: 'optim.link_weight' > 0 needs 'data.chain_length' > 1 (it weighs the chains' links)")
     if cfg.inputs not in IN_CHANNELS:
         raise ConfigError(f"{path}: 'inputs' must be one of {', '.join(map(str, IN_CHANNELS))} (weight-network input versions)")
     if cfg.optim.init:
@@ -318,11 +283,9 @@ def draw_chains(samples: list[dict], length: int, per_sequence: int, rng: random
     return chains
 
 
-def chain_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor, length: int,
-                    link_weight: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Eq. 7 on chains: ``|log(T_1 ... T_L) - log(T_1^gt ... T_L^gt)|_1`` per chain, plus
-    ``link_weight`` times the mean of eq. 7 over the chain's links; for ``length`` 1 eq. 7 per
-    pair, ``|p* - p_gt|_1`` (the pair recipe, computed as such).
+def chain_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor, length: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 7 on chains: ``|log(T_1 ... T_L) - log(T_1^gt ... T_L^gt)|_1`` per chain; for
+    ``length`` 1 eq. 7 per pair, ``|p* - p_gt|_1`` (the pair recipe, computed as such).
 
     Args:
         p, p_gt: ``(C * length, 6)`` solved and true poses of the links (current -> reference,
@@ -341,10 +304,7 @@ def chain_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor, lengt
     est, gt = T[:, 0], T_gt[:, 0]
     for k in range(1, length):
         est, gt = est @ T[:, k], gt @ T_gt[:, k]
-    loss = (se3_log(est) - se3_log(gt)).abs().sum(1)
-    if link_weight:
-        loss = loss + link_weight * (p.double() - p_gt.double()).abs().sum(1).view(C, length).mean(1)
-    return loss, ok_chain
+    return (se3_log(est) - se3_log(gt)).abs().sum(1), ok_chain
 
 
 def _cache_key(cfg: TrainConfig, path: Path) -> str:
@@ -352,21 +312,19 @@ def _cache_key(cfg: TrainConfig, path: Path) -> str:
     data = asdict(cfg.data)
     for name in ("breathing_follows_tissue", "scenarios", "seeds", "sequences", "cache_dir"):
         data.pop(name)  # the sequence itself is named by its path (the coupling is in the folder name)
-    data.pop("chain_length")    # (keys written before chains existed stay valid; "pairs" below marks chain caches)
-    if cfg.data.reference == "frame":   # (keys written before model references existed stay valid)
-        for name in ("reference", "min_model_coverage", "fuse_exposure"):
+    data.pop("chain_length")    # ("pairs" below marks the caches of every consecutive pair)
+    if cfg.data.reference == "frame":
+        for name in ("reference", "min_model_coverage"):
             data.pop(name)
     depth = asdict(cfg.depth)
     depth.pop("temporal_still_mm")      # the pair cache filters every frame (tracking decides per frame)
-    if cfg.depth.temporal_gain >= 1.0:     # (keys written before the temporal filter existed stay valid)
+    if cfg.depth.temporal_gain >= 1.0:
         for name in ("temporal_gain", "temporal_gate_mm"):
             depth.pop(name)
-    if cfg.depth.temporal_gain >= 1.0 or cfg.depth.temporal_velocity_gain == 0:   # (and before its velocity)
-        depth.pop("temporal_velocity_gain")
     relevant = {"seq": str(path.resolve()), "data": data, "corr": asdict(cfg.correspondence),
-                "depth": depth, "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 2,
+                "depth": depth, "downscale": cfg.downscale, "seed": cfg.optim.seed, "v": 3,
                 "inputs": cfg.inputs}
-    if cfg.data.reference == "model" or uses_map_depth(cfg.inputs):
+    if cfg.data.reference == "model":
         relevant["map"] = asdict(cfg.map)
     if cfg.data.chain_length > 1:
         relevant["pairs"] = "consecutive"     # every consecutive pair, whatever the chain length (drawn in training)
@@ -391,35 +349,26 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
     dmax = cfg.depth.max_depth_mm
     H, W = dataset.camera.height, dataset.camera.width
     views: dict[int, object] = {}
-    last_filtered: list = [-1, None]    # frames made in order (filter, memory): the last one, its view
-    memory = uses_motion_memory(cfg.inputs)
+    last_filtered: list = [-1, None]    # frames made in order (the filter): the last one, its view
 
     def view(k):
         if k not in views:
-            if cfg.depth.temporal_gain < 1.0 or memory:
-                # each frame filtered against the one before it, and its motion memory carried on from
-                # that one at the true motion, as tracking with every frame does
+            if cfg.depth.temporal_gain < 1.0:
+                # each frame filtered against the one before it, as tracking with every frame does
                 m, prev = last_filtered
                 if k <= m:
                     raise AssertionError(f"{path}: frame {k} asked for after frame {m} (pairs are sorted)")
                 for n in range(m + 1, k + 1):
                     v = frame_view(odo, dataset.frame(n), path)
                     if prev is not None:
-                        flow, flow_ok = odo._correspondences(v, prev, None, 0.0)
-                        odo.filter_depth(v, prev, flow, flow_ok)
-                        if memory:
-                            T = torch.as_tensor(relative_rect_transform(dataset.gt_poses, dataset.R1, n - 1, n))
-                            T[:3, 3] /= dmax
-                            odo.remember_motion(v, prev, flow, odo.build_problem(v, prev, flow, flow_ok), T[None])
+                        odo.filter_depth(v, prev, odo.correspondences(v, prev))
                     views[n] = prev = v
                 last_filtered[:] = [k, prev]
             else:
                 views[k] = frame_view(odo, dataset.frame(k), path)   # depth.source: stereo or the generator's
         return views[k]
 
-    # model references, or frame references that layout-4 networks compare with the map
-    model = ModelReference(cfg, odo, dataset) if cfg.data.reference == "model" or uses_map_depth(cfg.inputs) else None
-    model_refs = cfg.data.reference == "model"
+    model = ModelReference(cfg, odo, dataset) if cfg.data.reference == "model" else None
     samples = []
     g = torch.Generator().manual_seed(rng.randrange(2**31))
     chained = cfg.data.chain_length > 1     # every consecutive pair: chains are drawn from them per epoch
@@ -427,20 +376,13 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
              sample_pairs(dataset.gt_poses, dataset.R1, cfg.data, rng))
     for i, j, moving in pairs:
         cur = view(j)
-        ref = model.view_at(i, view) if model_refs else view(i)
+        ref = model.view_at(i, view) if model is not None else view(i)
         if ref is None:
             continue
-        model_depth = None
-        if uses_map_depth(cfg.inputs):      # as the pipeline sets View.model_depth (a model view has none)
-            model_depth = torch.zeros_like(ref.depth) if model_refs else model.depth_at(i, view)
-        flow, flow_ok = odo._correspondences(cur, ref, None, 0.0)    # as tracking computes them
-        problem = odo.build_problem(cur, ref, flow, flow_ok)
-        target, valid, valid3, points_ref = problem
-        rigid = odo.rigid_flow(cur, flow, problem) if uses_rigid_flow(cfg.inputs) else None  # as tracking computes it
-        _, x3 = network_inputs(WeightInputs(cur.image, cur.depth / dmax, flow, cur.parallax,
-                                            ref.image, ref.depth / dmax, ref.parallax, valid, rigid,
-                                            None if model_depth is None else model_depth / dmax,
-                                            ref.motion_memory if memory else None),
+        corr = odo.correspondences(cur, ref)    # as tracking computes them
+        target, valid, valid3, points_ref = odo.residual_problem(cur, ref, corr)
+        _, x3 = network_inputs(WeightInputs(cur.image, cur.depth / dmax, corr.flow, cur.parallax,
+                                            ref.image, ref.depth / dmax, ref.parallax, valid),
                                cfg.downscale, cfg.inputs)
         idx = valid.flatten().nonzero().squeeze(1)
         n = cfg.data.pixels_per_pair
@@ -487,29 +429,28 @@ class ModelReference:
     is not there yet), rendered at a frame's pose and made a view as tracking makes it.
 
     Args:
-        cfg: the training config (``map``, ``data.min_model_coverage``, ``data.fuse_exposure``).
+        cfg: the training config (``map``, ``data.min_model_coverage``).
         odo: the odometry the views come from.
         dataset: the sequence (with ground truth).
     """
 
     def __init__(self, cfg: TrainConfig, odo: StereoOdometry, dataset):
         from mapping import SurfelMap
-        from slam.pipeline import FusionExposure
+        from slam.tracker import FusionExposure
 
         self.cfg, self.odo = cfg, odo
         self.map = SurfelMap(cfg.map)
-        self.exposure = FusionExposure(cfg.data.fuse_exposure)
+        self.exposure = FusionExposure()
         self.poses = torch.as_tensor(original_to_rect_pose(dataset.gt_poses, dataset.R1), dtype=torch.float32)
         self.size = (dataset.camera.height, dataset.camera.width)
         self.fused = -1
         self.last: tuple[int, View | None] | None = None   # (frame, its model view): pairs share references
-        self.last_depth: tuple[int, torch.Tensor] | None = None   # (frame, the map's depth there)
 
     def view_at(self, i: int, view) -> View | None:
         """The model view at frame ``i``'s pose after fusing frames ``0..i`` (``view(k)`` gives frame
         ``k``'s view; ``i`` must not decrease between calls), or None where the render covers
         less than ``data.min_model_coverage`` of frame ``i``'s valid pixels."""
-        from slam.pipeline import model_coverage
+        from slam.tracker import model_coverage
 
         if self.last is not None and self.last[0] == i:
             return self.last[1]     # the map has not changed since: the same render
@@ -521,14 +462,6 @@ class ModelReference:
             ref = self.odo.view_from_render(mv.color, mv.depth, mv.valid, background=frame)
         self.last = (i, ref)
         return ref
-
-    def depth_at(self, i: int, view) -> torch.Tensor:
-        """``(1, 1, H, W)`` depth in mm of the map rendered at frame ``i``'s pose after fusing frames
-        ``0..i``, 0 where it does not cover the frame (``View.model_depth`` as the pipeline sets it)."""
-        if self.last_depth is None or self.last_depth[0] != i:
-            mv = self._render(i, view)
-            self.last_depth = (i, torch.where(mv.valid, mv.depth, torch.zeros_like(mv.depth))[None, None])
-        return self.last_depth[1]
 
     def _render(self, i: int, view):
         while self.fused < i:
@@ -649,58 +582,11 @@ def evaluate_loss(nets, samples: list[dict], cfg: TrainConfig, n2d: int | None =
                 p, ok = declarative_pose(w2, w3, prob, cfg.solver, cfg.optim.grad_tol)
             else:
                 p, ok = pose_from_batch(nets, batch, cfg, n2d)
-            per, ok = chain_pose_loss(p, batch["p_gt"], ok, L, cfg.optim.link_weight)
+            per, ok = chain_pose_loss(p, batch["p_gt"], ok, L)
             total += float((per * ok).sum())
             count += int(ok.sum())
             failed += int((~ok).sum())
     return total / max(count, 1), failed
-
-
-class ValidationObjective:
-    """What early stopping minimises, and each training pair's loss factor (``optim.balance``).
-
-    ``none``: the mean loss over the validation pairs; every factor is 1. ``constant``: the mean
-    over scenarios of (the scenario's validation loss / the constant weights' loss on its
-    validation pairs); a training pair's factor is 1 / the constant's mean loss over its
-    scenario's training pairs, normalised to a mean factor of 1 (so ``optim.lr`` keeps its scale).
-    """
-
-    def __init__(self, cfg: TrainConfig, train_set: list[dict], val: list[dict]):
-        self.cfg, self.val = cfg, val
-        self.balanced = cfg.optim.balance == "constant"
-        self.factors = torch.ones(len(train_set), dtype=torch.float64)
-        self.reference: dict[str, dict[str, float]] = {}
-        if not self.balanced:
-            return
-        const = tuple(float(w) for w in cfg.optim.balance_weights)
-        for name, group in (("train", train_set), ("val", val)):
-            self.reference[name] = {sc: evaluate_loss(None, g, cfg, constant=const)[0]
-                                    for sc, g in by_scenario(group).items()}
-        for name, ref in self.reference.items():
-            zero = [sc for sc, v in ref.items() if v <= 0.0]
-            if zero:
-                raise SlamError(f"training: constant weights {list(const)} solve every {name} pair of "
-                                f"{', '.join(zero)} exactly; optim.balance: constant needs a non-zero reference")
-        raw = torch.tensor([1.0 / self.reference["train"][scenario_of(s)] for s in train_set], dtype=torch.float64)
-        self.factors = raw / raw.mean()
-
-    def __call__(self, nets) -> tuple[float, float, int]:
-        """``(objective, mean validation loss, failed forward passes)`` of ``nets`` (the two are
-        the same number unless balanced)."""
-        if not self.balanced:
-            loss, failed = evaluate_loss(nets, self.val, self.cfg)
-            return loss, loss, failed
-        ratios, total, count, failed = [], 0.0, 0, 0
-        for sc, group in by_scenario(self.val).items():
-            loss, f = evaluate_loss(nets, group, self.cfg)
-            ratios.append(loss / self.reference["val"][sc])
-            total, count, failed = total + loss * (len(group) - f), count + len(group) - f, failed + f
-        return float(np.mean(ratios)), total / max(count, 1), failed
-
-    def meta(self) -> dict:
-        """What the checkpoint records about the objective."""
-        return {"balance": self.cfg.optim.balance, "balance_weights": list(self.cfg.optim.balance_weights),
-                "constant_loss_per_scenario": self.reference}
 
 
 def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
@@ -732,11 +618,10 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
     opt = torch.optim.Adam(model.parameters(), lr=cfg.optim.lr)
 
     baseline, _ = evaluate_loss(nets, val, cfg, constant=(1.0, 1.0))
-    objective = ValidationObjective(cfg, train_set, val)
-    best_val, best_loss, _ = objective(nets)
+    best_val, _ = evaluate_loss(nets, val, cfg)
     best_state = {k: v.clone() for k, v in nets.state_dict().items()}
     best_epoch, stale = 0, 0
-    history = [{"epoch": 0, "val": best_val} | ({"val_loss": best_loss} if objective.balanced else {})]
+    history = [{"epoch": 0, "val": best_val}]
     bar = tqdm(range(1, cfg.optim.epochs + 1), desc=f"train {cfg.residuals}", disable=not progress or rank != 0)
     bar.set_postfix(val=f"{best_val:.5f}", const=f"{baseline:.5f}")
     t0 = time.time()
@@ -756,41 +641,35 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
             idx = [m for c in perm[k:k + per_step] for m in chains[c]]
             batch = collate([train_set[m] for m in idx])
             p, ok = pose_from_batch(model, batch, cfg)
-            per, ok = chain_pose_loss(p, batch["p_gt"], ok, L, cfg.optim.link_weight)  # eq. 7 per pair, or per chain
+            per, ok = chain_pose_loss(p, batch["p_gt"], ok, L)  # eq. 7 per pair, or per chain
             failed += int((~ok).sum())
-            if objective.balanced:
-                per = per * objective.factors[idx]
             loss = (per * ok).sum() / ok.sum().clamp(min=1)     # mean over the successful pairs / chains
             opt.zero_grad()
             loss.backward()
             opt.step()
             losses.append(float(loss.detach()))
         nets.eval()
-        val_score, val_loss, val_failed = objective(nets)
-        history.append({"epoch": epoch, "train": float(np.mean(losses)), "val": val_score,
-                        "train_failed": failed, "val_failed": val_failed}
-                       | ({"val_loss": val_loss} if objective.balanced else {}))
-        bar.set_postfix(train=f"{np.mean(losses):.5f}", val=f"{val_score:.5f}", const=f"{baseline:.5f}")
-        if val_score < best_val:
-            best_val, best_loss, best_epoch, stale = val_score, val_loss, epoch, 0
+        val_loss, val_failed = evaluate_loss(nets, val, cfg)
+        history.append({"epoch": epoch, "train": float(np.mean(losses)), "val": val_loss,
+                        "train_failed": failed, "val_failed": val_failed})
+        bar.set_postfix(train=f"{np.mean(losses):.5f}", val=f"{val_loss:.5f}", const=f"{baseline:.5f}")
+        if val_loss < best_val:
+            best_val, best_epoch, stale = val_loss, epoch, 0
             best_state = {k: v.clone() for k, v in nets.state_dict().items()}
             if rank == 0:  # an interrupted training keeps its best checkpoint
                 save_checkpoint(out_dir / f"weights_{cfg.residuals}.pt", cfg, best_state, sequences, len(train_set),
-                                len(val), best_epoch, best_loss, baseline, history, t0, final=False,
-                                val_sequences=val_sequences, objective=objective.meta() | {"best": best_val})
+                                len(val), best_epoch, best_val, baseline, history, t0, final=False,
+                                val_sequences=val_sequences)
         else:
             stale += 1
             if stale >= cfg.optim.patience:
                 break
     ckpt_path = out_dir / f"weights_{cfg.residuals}.pt"
     if rank == 0:
-        save_checkpoint(ckpt_path, cfg, best_state, sequences, len(train_set), len(val), best_epoch, best_loss,
-                        baseline, history, t0, final=True, val_sequences=val_sequences,
-                        objective=objective.meta() | {"best": best_val})
-        balanced = (f"; mean over scenarios of loss / constant {list(cfg.optim.balance_weights)}: {best_val:.4f}"
-                    if objective.balanced else "")
-        print(f"best validation loss {best_loss:.5f} at epoch {best_epoch} (constant weights w=1: {baseline:.5f}"
-              f"{balanced}); checkpoint {ckpt_path}")
+        save_checkpoint(ckpt_path, cfg, best_state, sequences, len(train_set), len(val), best_epoch, best_val,
+                        baseline, history, t0, final=True, val_sequences=val_sequences)
+        print(f"best validation loss {best_val:.5f} at epoch {best_epoch} (constant weights w=1: {baseline:.5f}); "
+              f"checkpoint {ckpt_path}")
     if world > 1:
         import torch.distributed as dist
 
@@ -823,10 +702,9 @@ def initial_networks(cfg: TrainConfig) -> WeightNetworks:
 
 def save_checkpoint(path: Path, cfg: TrainConfig, state: dict, sequences: list, n_train: int, n_val: int,
                     best_epoch: int, best_val: float, baseline: float, history: list, t0: float, final: bool,
-                    val_sequences: list | None = None, objective: dict | None = None) -> None:
+                    val_sequences: list | None = None) -> None:
     """Write the weights with everything needed to reproduce and use them. ``val_sequences``: the
-    names of the sequences held out whole for validation (empty when pairs were split);
-    ``objective``: what early stopping minimised (``ValidationObjective.meta``)."""
+    names of the sequences held out whole for validation (empty when pairs were split)."""
     meta = {
         "residuals": cfg.residuals, "reference": cfg.data.reference, "downscale": cfg.downscale, "base": cfg.base,
         "inputs": cfg.inputs,
@@ -836,7 +714,6 @@ def save_checkpoint(path: Path, cfg: TrainConfig, state: dict, sequences: list, 
                  "validation_sequences": list(val_sequences or [])},
         "best_epoch": best_epoch, "val_loss": best_val, "val_loss_constant_w1": baseline,
         "history": history, "minutes": (time.time() - t0) / 60.0, "finished": final,
-        "objective": objective or {"balance": "none"},
     }
     tmp = path.with_suffix(".tmp")
     torch.save({"state_dict": state, "meta": meta}, tmp)

@@ -115,7 +115,7 @@ def test_warning_when_the_networks_saw_another_filter(caplog):
     """Networks trained on depth filtered with one gain, tracking with another: one warning naming both."""
     import logging
 
-    from vo.odometry import warn_depth_filter_mismatch
+    from vo.weights import warn_depth_filter_mismatch
 
     meta = {"train_config": {"depth": {"temporal_gain": 0.05}}}
     with caplog.at_level(logging.WARNING):
@@ -129,18 +129,19 @@ def test_warning_when_the_networks_saw_another_filter(caplog):
 
 @pytest.mark.parametrize("residuals", ["2d3d", "2d", "3d"])
 def test_filtered_depth_selects_the_packaged_networks_trained_on_it(residuals):
-    """With the filter on and no checkpoint named, tracking loads the packaged networks trained on
-    filtered depth (their config says so); without it, the stereo-depth ones."""
+    """With the filter on and no checkpoint named, 2D&3D tracking loads the packaged networks trained
+    on filtered depth (their config says so) for the filtered frames; without it, and for the 2D and
+    3D ablations (which ship one network each), the stereo-depth ones."""
     from slam.config import load_config
     from vo.camera import StereoCamera
     from vo.odometry import StereoOdometry
 
     cam = StereoCamera(K=np.array([[200.0, 0, 79.5], [0, 200.0, 63.5], [0, 0, 1]]), baseline_mm=5.0, width=160, height=128)
-    for gain, expected in ((0.05, 0.05), (1.0, 1.0)):
+    for gain, expected in ((0.05, 0.05 if residuals == "2d3d" else 1.0), (1.0, 1.0)):
         cfg = load_config(None, [f"depth.temporal_gain={gain}", f"weights.residuals={residuals}"])
         odo = StereoOdometry(cam, cfg.vo())
-        assert odo.weight_meta["residuals"] == residuals
-        assert odo.weight_meta["train_config"]["depth"].get("temporal_gain", 1.0) == expected
+        assert odo.networks.meta["residuals"] == residuals
+        assert odo.networks.meta["train_config"]["depth"].get("temporal_gain", 1.0) == expected
 
 
 @pytest.mark.parametrize("scenario, expected", [("breathing", [True] * 7), ("rigid", [True] + [False] * 6)])
@@ -156,29 +157,29 @@ def test_filter_only_while_the_camera_is_still(synth_dir, tmp_path, scenario, ex
     cfg = load_config(None, ["logging.progress=false", "depth.temporal_gain=0.05", "depth.temporal_still_mm=0.1"])
     pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / "run")
     odo = pipe.odometry
-    assert odo.unfiltered_weight_networks is not None
+    assert odo.networks.stereo is not odo.networks.filtered
     filtered, nets = [], []
-    track, weights = odo.track, odo._weights
+    track, weights = odo.track, odo.weight_maps
 
-    def spy_weights(cur, *args, **kwargs):
-        nets.append(odo.unfiltered_weight_networks if cur.stereo_depth is None else odo.weight_networks)
-        return weights(cur, *args, **kwargs)
+    def spy_weights(cur, ref, *args, **kwargs):
+        nets.append(odo.networks.select(ref.from_model, cur.stereo_depth is not None))
+        return weights(cur, ref, *args, **kwargs)
 
     def spy_track(cur, *args, **kwargs):
         result = track(cur, *args, **kwargs)
         filtered.append(cur.stereo_depth is not None)
         return result
 
-    odo.track, odo._weights = spy_track, spy_weights
+    odo.track, odo.weight_maps = spy_track, spy_weights
     result = pipe.run(progress=False)
     assert filtered == expected
-    assert [n is odo.weight_networks for n in nets] == expected
+    assert [n is odo.networks.filtered for n in nets] == expected
     assert not any(r.failed for r in result.records)
 
 
 def test_pair_cache_key_ignores_the_filter_settings_that_do_not_change_the_pairs(tmp_path):
-    """Off (gain 1), the filter's settings leave the key as it was before the filter existed (old
-    caches stay valid); ``temporal_still_mm`` never enters it (the cache filters every frame)."""
+    """Off (gain 1), the filter's settings do not enter the key; ``temporal_still_mm`` never does
+    (the cache filters every frame)."""
     from slam.training import _cache_key, load_train_config
 
     data, path = _rigid_pairs_config(tmp_path, "rigid")
@@ -186,73 +187,3 @@ def test_pair_cache_key_ignores_the_filter_settings_that_do_not_change_the_pairs
     assert key() == key("depth.temporal_gate_mm=2", "depth.temporal_still_mm=0.1")
     assert key("depth.temporal_gain=0.05") == key("depth.temporal_gain=0.05", "depth.temporal_still_mm=0.1")
     assert key("depth.temporal_gain=0.05") != key() != key("depth.temporal_gain=0.1")
-
-
-def test_velocity_state_follows_a_depth_ramp_without_lag():
-    """A surface approaching at 0.05 mm per frame, seen with noise: the plain filter lags it by
-    v (1 - g) / g; with the velocity state (``depth.temporal_velocity_gain``) the lag vanishes and
-    the depth change between frames is the true motion, while the noise stays a fraction of the
-    stereo noise."""
-    from vo.depth import filter_depth_and_velocity_along_flow
-
-    g = torch.Generator().manual_seed(7)
-    H, W, v, sigma = 16, 16, -0.05, 0.15
-    valid = torch.ones(1, 1, H, W, dtype=torch.bool)
-    flow = torch.zeros(1, 2, H, W)
-    state = {"plain": (None, None), "ab": (None, None)}
-    changes = {"plain": [], "ab": []}
-    for n in range(120):
-        truth = 70.0 + v * n
-        stereo = truth + sigma * torch.randn(1, 1, H, W, generator=g)
-        for name, beta in (("plain", 0.0), ("ab", 0.02)):
-            d_ref, v_ref = state[name]
-            if d_ref is None:
-                state[name] = (stereo, None)
-                continue
-            d, vel = filter_depth_and_velocity_along_flow(stereo, valid, d_ref, valid, flow, None, 0.2, 1.0,
-                                                          v_ref, beta)
-            changes[name].append(float((d - d_ref).mean()))
-            state[name] = (d, vel)
-    truth = 70.0 + v * 119
-    lag = {k: float(state[k][0].mean()) - truth for k in state}
-    assert lag["plain"] == pytest.approx(-v * (1 - 0.2) / 0.2, abs=0.03)          # 0.2 mm behind
-    assert abs(lag["ab"]) < 0.03, lag
-    assert np.mean(changes["ab"][60:]) == pytest.approx(v, abs=0.005)
-    noise = float((state["ab"][0] - state["ab"][0].mean()).std())
-    assert noise < 0.4 * sigma, noise
-    assert float(state["ab"][1].mean()) == pytest.approx(v, abs=0.01)
-
-
-def test_velocity_state_settings(tmp_path, capsys):
-    """Off (0), the velocity gain leaves the pair cache key as before; on, it is part of it; out of
-    range it is refused in one line; the view keeps its velocity only when it is on."""
-    from slam.cli import main
-    from slam.training import _cache_key, load_train_config
-
-    data, path = _rigid_pairs_config(tmp_path, "rigid")
-    key = lambda *o: _cache_key(load_train_config(path, list(o)), data)   # noqa: E731
-    assert key("depth.temporal_gain=0.2") == key("depth.temporal_gain=0.2", "depth.temporal_velocity_gain=0")
-    assert key("depth.temporal_gain=0.2", "depth.temporal_velocity_gain=0.02") != key("depth.temporal_gain=0.2")
-    assert key() == key("depth.temporal_velocity_gain=0.02")     # no filter: no velocity either
-    assert main(["run", str(tmp_path), "--set", "depth.temporal_velocity_gain=1"]) != 0
-    assert "depth.temporal_velocity_gain must be in [0, 1)" in capsys.readouterr().err
-
-
-@pytest.mark.parametrize("beta", [0.0, 0.02])
-def test_filter_keeps_the_velocity_on_the_view(synth_dir, beta):
-    from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.frame_view import frame_view
-    from vo.odometry import StereoOdometry
-
-    data = synth_dir("rigid", 4, (160, 128))
-    cfg = load_config(None, ["depth.temporal_gain=0.2", f"depth.temporal_velocity_gain={beta}"])
-    ds = open_dataset(data, cfg.data)
-    odo = StereoOdometry(ds.camera, cfg.vo())
-    views = [frame_view(odo, ds.frame(k), data) for k in range(3)]
-    for k in (1, 2):
-        odo.track(views[k], views[k - 1])
-        assert views[k].stereo_depth is not None
-        assert (views[k].depth_velocity is not None) == (beta > 0)
-    if beta > 0:   # the camera moves: the velocity follows the depth change of the filtered pixels
-        assert float(views[2].depth_velocity.abs().max()) > 0

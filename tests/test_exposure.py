@@ -60,8 +60,8 @@ def test_frame2model_through_dim_frames_and_a_dark_frame(synth_dir, tmp_path):
     """Scanning at 320x256; frames 30-34 at a quarter of the exposure (the scope's automatic
     exposure, a flash), frame 45 nearly black.  The dark frame fails (pose carried over, nothing
     fused) and tracking goes on; the dim frames are tracked, and the map's colour, fused at one
-    exposure, keeps the flow against the render working: fused as seen, the dim frames' new
-    tissue leaves dark patches in the map and the ATE is larger (0.56 against 0.28 mm measured)."""
+    exposure, keeps the flow against the render working (fused as seen, the dim frames' new
+    tissue left dark patches in the map: 0.56 against 0.28 mm measured, docs/experiments.md)."""
     data = tmp_path / "dim"
     shutil.copytree(synth_dir("scanning", 60, size=(320, 256), seed=5), data)
     for k, level in [(30, 0.25), (31, 0.25), (32, 0.25), (33, 0.25), (34, 0.25), (45, 0.02)]:
@@ -69,14 +69,10 @@ def test_frame2model_through_dim_frames_and_a_dark_frame(synth_dir, tmp_path):
             path = data / "video_frames" / f"{k:06d}{side}.png"
             img = cv2.imread(str(path))
             cv2.imwrite(str(path), (img.astype(np.float32) * level).astype(np.uint8))
-    metrics = {}
-    for fuse_exposure in ("normalised", "as_seen"):
-        out = tmp_path / fuse_exposure
-        assert main(["run", str(data), "--mode", "frame2model", "--out", str(out), "--quiet",
-                     "--set", f"tracking.fuse_exposure={fuse_exposure}"]) == 0
-        metrics[fuse_exposure] = m = json.loads((out / "metrics.json").read_text())
-        assert m["failed_frames"] == [45] and "valid pixels" in m["failures"]["45"]
-        rows = [r for r in (out / "trajectory.txt").read_text().splitlines() if not r.startswith("#")]
-        assert len(rows) == 60
-    assert metrics["normalised"]["ate_rmse_mm"] < 0.45
-    assert metrics["as_seen"]["ate_rmse_mm"] > 1.5 * metrics["normalised"]["ate_rmse_mm"]
+    out = tmp_path / "run"
+    assert main(["run", str(data), "--mode", "frame2model", "--out", str(out), "--quiet"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["failed_frames"] == [45] and "valid pixels" in m["failures"]["45"]
+    rows = [r for r in (out / "trajectory.txt").read_text().splitlines() if not r.startswith("#")]
+    assert len(rows) == 60
+    assert m["ate_rmse_mm"] < 0.45

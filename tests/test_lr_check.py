@@ -51,9 +51,9 @@ def test_pipeline_starts_the_solver_from_the_last_motion(synth_dir, tmp_path):
         starts, motions = [], []
         track = pipe.odometry.track
 
-        def spy(*args, T_init=None, **kwargs):
-            starts.append(None if T_init is None else np.array(T_init))
-            result = track(*args, T_init=T_init, **kwargs)
+        def spy(cur, ref, init=None, filter_against=None):
+            starts.append(None if init is None else np.array(init))
+            result = track(cur, ref, init, filter_against)
             motions.append(result.relative)
             return result
 

@@ -36,8 +36,8 @@ def test_prefetcher_disabled_reads_synchronously():
     reader.close()
 
 
-def test_stereo_ahead_gives_the_same_run_in_another_thread(synth_dir, tmp_path):
-    """``tracking.stereo_ahead``: the next frame's stereo depth is made in the read-ahead thread;
+def test_read_ahead_gives_the_same_run_in_another_thread(synth_dir, tmp_path):
+    """``tracking.read_ahead``: the next frame's stereo depth is made in the read-ahead thread;
     the trajectory is the same bit for bit, the thread count of torch is restored after the run,
     and ``threads: 0`` leaves one core to that thread."""
     import numpy as np
@@ -51,7 +51,7 @@ def test_stereo_ahead_gives_the_same_run_in_another_thread(synth_dir, tmp_path):
     before = torch.get_num_threads()
     poses, stereo_threads = {}, {}
     for ahead in (True, False):
-        cfg = load_config(None, ["tracking.mode=frame2model", f"tracking.stereo_ahead={str(ahead).lower()}",
+        cfg = load_config(None, ["tracking.mode=frame2model", f"tracking.read_ahead={str(ahead).lower()}",
                                  "threads=1"])
         pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / str(ahead))
         make_view = pipe.odometry.make_view
@@ -76,14 +76,14 @@ def test_stereo_ahead_gives_the_same_run_in_another_thread(synth_dir, tmp_path):
     assert pipe._torch_threads() == max(1, cores - 1)
 
 
-@pytest.mark.parametrize("mode, slow", [("frame2frame", "track"), ("chained", "track"), ("frame2frame", "stereo")])
+@pytest.mark.parametrize("mode, slow", [("frame2frame", "track"), ("last_frame", "track"), ("frame2frame", "stereo")])
 def test_flow_ahead_gives_the_same_run_and_goes_to_the_idle_thread(synth_dir, tmp_path, mode, slow):
-    """``tracking.flow_ahead``: the read-ahead thread also computes each frame's temporal flow
+    """``tracking.read_ahead``: the read-ahead thread also computes each frame's temporal flow
     against the previous frame, with its own estimator, unless the main thread already waits for
     that frame; the trajectory is the same bit for bit either way. With tracking the slower
     stage the flows go to the read-ahead thread (all but the first pair's: frame 0 is not
     tracked, so the main thread waits for frame 1); with stereo the slower one they stay in the
-    main thread. Frame2model chained through the last frame takes them too."""
+    main thread. Frame2model with the flow against the last frame takes them too."""
     import time
 
     import numpy as np
@@ -93,10 +93,10 @@ def test_flow_ahead_gives_the_same_run_and_goes_to_the_idle_thread(synth_dir, tm
     from slam.pipeline import Pipeline
 
     data = synth_dir("rigid", 6, (160, 128))
-    extra = [] if mode == "frame2frame" else ["tracking.mode=frame2model", "tracking.flow_reference=chained"]
+    extra = [] if mode == "frame2frame" else ["tracking.mode=frame2model", "tracking.flow_reference=last_frame"]
     poses, main_pairs, ahead_pairs = {}, {}, {}
     for ahead in (True, False):
-        cfg = load_config(None, [*extra, f"tracking.flow_ahead={str(ahead).lower()}", "threads=1", "tracking.keyframe_gap=1"])
+        cfg = load_config(None, [*extra, f"tracking.read_ahead={str(ahead).lower()}", "threads=1", "tracking.keyframe_gap=1"])
         pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / f"{mode}_{slow}_{ahead}")
         odo = pipe.odometry
         pair_flow, slowed = odo._pair_flow, getattr(odo, "track" if slow == "track" else "make_view")

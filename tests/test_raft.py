@@ -183,6 +183,7 @@ def test_backend_loads_dataparallel_checkpoint_and_runs(tmp_path):
     im1, im2 = torch.rand(1, 3, 50, 70), torch.rand(1, 3, 50, 70)  # padded to 56 x 72 inside
     flow = est.flow(im1, im2)
     assert flow.shape == (1, 2, 50, 70) and flow.dtype == torch.float32 and torch.isfinite(flow).all()
+    assert RaftFlow(ckpt, iters=2).small            # the variant is read off the checkpoint
 
 
 @pytest.mark.parametrize("wrap", ["state_dict", "model"])
@@ -190,6 +191,7 @@ def test_backend_loads_wrapped_full_checkpoint(tmp_path, wrap):
     ckpt = tmp_path / "raft-things.pth"
     _save_random_checkpoint(ckpt, small=False, wrap=wrap)
     est = RaftFlow(str(ckpt), iters=1)
+    assert not est.small
     flow = est.flow(torch.rand(1, 3, 40, 48), torch.rand(1, 3, 40, 48))
     assert flow.shape == (1, 2, 40, 48) and torch.isfinite(flow).all()
 

@@ -11,7 +11,7 @@ from vo.depth import depth_from_parallax, flow_consistency, parallax_from_depth
 from vo.geometry import backproject, project, sample_by_flow
 from vo.lie import se3_exp, se3_log
 from vo.residuals import PoseProblem, jacobians, objective_se3, residuals
-from vo.solver import solve_pose
+from vo.solver import Tolerance, solve_pose
 
 DMAX = 250.0
 
@@ -189,7 +189,7 @@ def test_robust_3d_step_ignores_a_non_rigid_patch(synth_dir):
     the true motion; one Cauchy-reweighted step (``solver.robust_3d_mm``) recovers it."""
     from slam.config import load_config
     from slam.datasets import open_dataset
-    from vo.odometry import StereoOdometry, View, cauchy_weights_3d
+    from vo.odometry import Correspondences, StereoOdometry, View, cauchy_weights_3d
     from vo.geometry import backproject, pixel_grid
     from vo.lie import se3_exp
 
@@ -214,29 +214,27 @@ def test_robust_3d_step_ignores_a_non_rigid_patch(synth_dir):
     bump[30:80, 40:110] = True
     depth_ref = torch.where(bump, depth_ref - 2.0, depth_ref)
 
-    def view(depth):
+    def view(depth, from_model=False):
         depth = depth.float()[None, None]
         return View(image=torch.full((1, 3, H, W), 0.5), gray=np.full((H, W), 128, np.uint8), depth=depth,
-                    valid=torch.ones(1, 1, H, W, dtype=torch.bool), parallax=torch.zeros(1, 2, H, W))
+                    valid=torch.ones(1, 1, H, W, dtype=torch.bool), parallax=torch.zeros(1, 2, H, W),
+                    from_model=from_model)
 
     errors = {}
-    for scale, model_scale, model_reference in ((0.0, 0.0, False), (0.5, 0.0, False), (0.5, 0.0, True),
-                                                (0.0, 0.5, True)):
-        cfg = load_config(None, ["weights.mode=constant", "weights.w3d=1.0", f"solver.robust_3d_mm={scale}", "depth.temporal_gain=1",
-                                 f"solver.robust_3d_model_mm={model_scale}"])
+    for scale, model_reference in ((0.0, False), (0.5, False), (0.5, True)):
+        cfg = load_config(None, ["weights.mode=constant", "weights.w3d=1.0", f"solver.robust_3d_mm={scale}", "depth.temporal_gain=1"])
         odo = StereoOdometry(ds.camera, cfg.vo())
-        odo._correspondences = lambda cur, ref, flow_ref, chain_gain: (flow, None)     # exact flow
-        res = odo.track(view(depth_cur), view(depth_ref), model_reference=model_reference)
+        odo.correspondences = lambda cur, against: Correspondences(flow, None)     # exact flow
+        res = odo.track(view(depth_cur), view(depth_ref, from_model=model_reference))
         assert not res.failed
-        errors[scale, model_scale, model_reference] = float(np.linalg.norm(res.relative[:3, 3] - T[:3, 3].numpy()))
-    plain = errors[0.0, 0.0, False]
+        errors[scale, model_reference] = float(np.linalg.norm(res.relative[:3, 3] - T[:3, 3].numpy()))
+    plain = errors[0.0, False]
     assert plain > 0.05, errors             # the patch biases the plain solution
-    assert errors[0.5, 0.0, False] < 0.2 * plain, errors
-    # against a model view the step follows solver.robust_3d_model_mm (off by default)
-    assert errors[0.5, 0.0, True] == pytest.approx(plain, rel=1e-6), errors
-    assert errors[0.0, 0.5, True] == pytest.approx(errors[0.5, 0.0, False], rel=1e-6), errors
+    assert errors[0.5, False] < 0.2 * plain, errors
+    # against a model view the step does not run
+    assert errors[0.5, True] == pytest.approx(plain, rel=1e-6), errors
     defaults = load_config(None, []).vo().solver
-    assert defaults.robust_3d_mm == 0.5 and defaults.robust_3d_model_mm == 0.0
+    assert defaults.robust_3d_mm == 0.5
     # the weights: 1 at zero residual, 1/2 at the scale
     from vo.residuals import PoseProblem
     pts = torch.rand(1, 3, 4)
@@ -264,7 +262,7 @@ def test_closed_form_exponential_matches_kornia():
 
 
 def test_compiled_normal_equations_match_torch():
-    """``solver.kernel: compiled`` (one numba loop) builds the same Gauss-Newton system as the
+    """The compiled solver kernel (one numba loop) builds the same Gauss-Newton system as the
     torch code: to float64 rounding on float64 data, to float32 rounding on float32 data; the
     solver then lands on the same pose, batched too, and refuses to run where gradients flow."""
     from vo.solver import normal_equations
@@ -291,16 +289,16 @@ def test_compiled_normal_equations_match_torch():
     p_gt = p_from_mm_rad([0.8, -0.5, 1.2], [0.02, -0.015, 0.01])
     exact = make_problem(p_gt)
     for method in ("lm", "gauss_newton"):
-        res = solve_pose(exact, SolverConfig(method=method, kernel="compiled"))
+        res = solve_pose(exact, SolverConfig(method=method), tol=Tolerance(kernel="compiled"))
         rot_err, trans_err = pose_errors(res.p, p_gt)
         assert rot_err < 1e-5 and trans_err < 1e-5, (rot_err, trans_err)
     noisy32 = prob.to(torch.float32)
-    a = solve_pose(noisy32, SolverConfig(kernel="torch")).T
-    b = solve_pose(noisy32, SolverConfig(kernel="compiled")).T
+    a = solve_pose(noisy32, SolverConfig(), tol=Tolerance(kernel="torch")).T
+    b = solve_pose(noisy32, SolverConfig(), tol=Tolerance(kernel="compiled")).T
     assert torch.equal(solve_pose(noisy32, SolverConfig()).T, b)           # auto, the default
     assert torch.allclose(a, b, atol=1e-5)
     with_grad = exact.with_weights(exact.w2d.clone().requires_grad_(True), exact.w3d)
     with pytest.raises(ValueError, match="compiled"):
-        solve_pose(with_grad, SolverConfig(kernel="compiled"))
-    auto = solve_pose(with_grad, SolverConfig(kernel="auto"))           # falls back to torch
-    assert torch.equal(auto.T, solve_pose(with_grad, SolverConfig(kernel="torch")).T)
+        solve_pose(with_grad, SolverConfig(), tol=Tolerance(kernel="compiled"))
+    auto = solve_pose(with_grad, SolverConfig(), tol=Tolerance(kernel="auto"))           # falls back to torch
+    assert torch.equal(auto.T, solve_pose(with_grad, SolverConfig(), tol=Tolerance(kernel="torch")).T)

@@ -2,11 +2,10 @@
 
     .venv/bin/python tools/benchmark_frame2model.py [--scenarios rigid loop] [--seeds 8001 8002 8003 8004]
         [--frames rigid=150 loop=300] [--size 320x256] [--workers 2] [--out runs/benchmark_f2m]
-        [--methods frame2frame last_frame rendered chained refined] [--set KEY=VALUE ...]
+        [--methods frame2frame last_frame rendered refined] [--set KEY=VALUE ...]
 
 Each sequence is tracked frame to frame and frame to model with each way of getting the flow
-(``tracking.flow_reference``: against the last real frame, the rendered model colour, or the last
-frame chained on into the model view), and ``refined`` (rendered, plus one refinement pass
+(``tracking.flow_reference``: against the last real frame or the rendered model colour), and ``refined`` (rendered, plus one refinement pass
 against the model rendered at the first estimate, ``tracking.refine_passes=1``), all with the
 same weights. Prints, and writes as markdown and JSON, the ATE-RMSE of every run and the ratio
 frame2model / frame2frame per sequence (the target is at most 0.7), with the mean over
@@ -27,7 +26,6 @@ METHODS = {
     "frame2frame": ["tracking.mode=frame2frame"],
     "last_frame": ["tracking.mode=frame2model", "tracking.flow_reference=last_frame"],
     "rendered": ["tracking.mode=frame2model", "tracking.flow_reference=rendered"],
-    "chained": ["tracking.mode=frame2model", "tracking.flow_reference=chained"],
     "refined": ["tracking.mode=frame2model", "tracking.flow_reference=rendered", "tracking.refine_passes=1"],
 }
 DEFAULT_FRAMES = {"rigid": 150, "loop": 300}

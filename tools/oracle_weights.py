@@ -78,7 +78,9 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
             errors, T, T_gt, dev = [], np.eye(4), np.eye(4), []
             for k in range(gap, len(ds)):
                 setting["cur"], setting["ref"] = nonrigid[k], nonrigid[k - gap]
-                result = odo.track(views[k], views[k - gap])
+                # with depth.temporal_gain < 1 each frame's depth is filtered against its reference
+                ref = views[k - gap]
+                result = odo.track(views[k], ref, filter_against=ref if odo.filters_depth() else None)
                 rel_gt = relative_rect_transform(ds.gt_poses, ds.R1, k - gap, k)
                 errors.append(float(np.linalg.norm(result.relative[:3, 3] - rel_gt[:3, 3])))
                 if gap == 1:

@@ -13,49 +13,43 @@ class CorrespondenceConfig:
             ``raft_checkpoint``, the published ``raft-things.pth`` layout).
         dis_preset: DIS preset for the temporal flow: ``ultrafast`` | ``fast`` | ``medium``.
         dis_stereo_preset: DIS preset for the stereo parallax flow.
-        dis_variational_refinement: run DIS's variational refinement (smoother, slower).
         dis_match_exposure: brighten the darker image of each pair to the other's mean before
             DIS (``vo.correspondence.dis.match_exposure``: exposure jumps between frames).
-        raft_checkpoint: path to a RAFT checkpoint.
-        raft_small: the checkpoint is RAFT-small.
+        raft_checkpoint: path to a RAFT checkpoint (RAFT or RAFT-small, told apart by its tensors).
         raft_iters: RAFT update iterations.
         lr_check_px: left-right stereo consistency threshold (pixels): a pixel whose stereo
             flow, followed there and back (left -> right -> left), misses itself by more is
             invalid (occluded in the right view or mismatched); 0 disables the check. It costs a
             second stereo flow (about 15 ms at 320x256 with DIS) and keeps those depths out of
             the residuals and the map: frame2model ATE -13 % and frame2frame -5 % on the synthetic
-            rigid and loop sequences, the learned 2D&3D macro ATE -5 % (README, "Left-right check").
+            rigid and loop sequences, the learned 2D&3D macro ATE -5 % (docs/experiments.md).
         fb_check_px: forward-backward temporal flow consistency threshold (pixels); 0 disables it
             (it costs a second temporal flow).
         max_vertical_parallax_px: pixels whose stereo flow has a larger vertical part are invalid
             (rectified views have none); 0 disables the check.
-        inpaint_masked_px: when the temporal flow runs against a model view (frame2model), the
-            frame's masked pixels (specular highlights, instruments: never fused, so the model
-            shows tissue there) are first inpainted from their surroundings with this radius
-            (OpenCV Telea); 0 disables it. Left in, their edges pull the flow around them.
-        stereo_inpaint_px: before the stereo match, each view's specular highlights (the
-            frame's ``specular`` masks) are inpainted with this radius (OpenCV Telea); 0 disables
-            it. A highlight is the light's mirror image: the two views show it on different
-            tissue, and every stereo patch overlapping it matched the highlight instead of the
-            tissue (on synthetic rigid sequences the depth within 3 px of a highlight was off by
-            1.0 mm on average, within 6-10 px by 0.63, elsewhere 0.32). The highlights' own
-            pixels stay invalid, and so do the left pixels whose match lands on a right-view
-            highlight. Costs 6-12 ms per frame at 320x256 with 3.5-5 % of the pixels in highlights.
+        inpaint_px: radius (pixels) with which specular highlights are inpainted from their
+            surroundings (OpenCV Telea) before a match; 0 disables it. A highlight is the light's
+            mirror image, not a mark on the tissue, and every patch overlapping it follows it.
+            Before the stereo match each view's own highlights are inpainted (the two views show
+            them on different tissue: on synthetic rigid sequences the depth within 3 px of a
+            highlight was off by 1.0 mm on average, within 6-10 px by 0.63, elsewhere 0.32; the
+            highlights' own pixels and the left pixels whose match lands on a right-view highlight
+            stay invalid). Before a temporal flow against a model view (frame2model) the frame's
+            masked pixels are inpainted too: the model shows tissue there. Never between two real
+            frames (both carry highlights; measured worse). 6-12 ms per frame at 320x256 with
+            3.5-5 % of the pixels in highlights (docs/experiments.md).
     """
 
     backend: str = "dis"
     dis_preset: str = "medium"
     dis_stereo_preset: str = "medium"
-    dis_variational_refinement: bool = True
     dis_match_exposure: bool = True
     raft_checkpoint: str = ""
-    raft_small: bool = False
     raft_iters: int = 12
     lr_check_px: float = 1.0
     fb_check_px: float = 0.0
     max_vertical_parallax_px: float = 2.0
-    inpaint_masked_px: float = 3.0
-    stereo_inpaint_px: float = 3.0
+    inpaint_px: float = 3.0
 
 
 @dataclass
@@ -66,7 +60,6 @@ class DepthConfig:
         min_depth_mm: nearer depths are invalid.
         max_depth_mm: farther depths are invalid; also the normaliser of depth inside the solver
             (paper, Sec. 2.1) and of the weight networks' depth inputs.
-        min_disparity_px: smaller disparities are invalid.
         source: ``stereo`` (depth from the stereo parallax flow) or ``groundtruth`` (the synthetic
             generator's exact depth: the error budget's switch).
         temporal_gain: < 1: each frame's depth is filtered along the temporal flow against its
@@ -77,12 +70,7 @@ class DepthConfig:
             both frames while the camera's motion is steady, and that common lag cancels in the
             3D residual. 1 = off (each frame's own stereo depth, the paper's; ``configs/paper.yaml``).
             Default 0.05 with ``temporal_still_mm`` 0.1: filtered while the camera is still.
-            README, "Temporal depth filter".
-        temporal_velocity_gain: > 0: the filter also keeps each pixel's depth velocity (mm per
-            frame, carried along the flow like the depth) and predicts with it, ``p = d_ref(x + F)
-            + v_ref(x + F)``, ``v = v_ref(x + F) + temporal_velocity_gain (d_stereo - p)`` (an
-            alpha-beta filter): a camera whose motion in depth changes is followed without the
-            lag that biases the plain filter. 0: no velocity (the plain exponential filter).
+            docs/experiments.md, "Depth filter and keyframe reference".
         temporal_gate_mm: where the stereo depth differs from the filtered reference by more than
             this (a disocclusion, the flow landing on another surface, fast motion in depth), the
             pixel starts again from its own stereo depth.
@@ -96,27 +84,20 @@ class DepthConfig:
 
     min_depth_mm: float = 20.0
     max_depth_mm: float = 250.0
-    min_disparity_px: float = 0.5
     source: str = "stereo"
     temporal_gain: float = 0.05
     temporal_gate_mm: float = 1.0
     temporal_still_mm: float = 0.1
-    temporal_velocity_gain: float = 0.0
 
 
 @dataclass
 class SolverConfig:
-    """The non-linear least-squares pose solver (paper eq. 6).
+    """The non-linear least-squares pose solver (paper eq. 4).
 
     Attributes:
         method: ``lm`` (Levenberg-Marquardt with analytic Jacobians), ``gauss_newton`` or
             ``lbfgs`` (as in the paper, autograd gradients).
         max_iters: iteration cap.
-        step_tol: stop when the update's norm (normalised units / radians) falls below this; the
-            default 1e-6 is 0.0002 mm at ``depth.max_depth_mm`` 200 and 0.00006 deg, two orders
-            below the per-frame error (tighter values cost iterations, not accuracy).
-        cost_rtol: stop when an accepted step lowers the cost by less than this fraction.
-        lbfgs_max_iters: iteration cap of L-BFGS.
         max_translation_mm: a relative motion larger than this is a failure.
         max_rotation_deg: a relative rotation larger than this is a failure.
         min_valid_pixels: fewer pixels with non-zero weight is a failure.
@@ -130,53 +111,37 @@ class SolverConfig:
             non-rigidly, and depth the stereo matcher got wrong, are outliers to the rigid motion
             and no longer pull the pose. 0 = off (the paper's objective; the networks are trained
             through it, this step runs after the optimum). Applies when the reference is a
-            camera frame (frame2frame, and frame2model's fallback to the last frame). README,
-            "Robust 3D residuals".
-        robust_3d_model_mm: the same step when the reference is a view rendered from the map
-            (frame2model, its refinement passes). Off by default: the fused model depth carries
-            few of the outliers the step is for, and there it changed the ATE by 1 % for 20-35 %
-            more frame time (README, "Robust 3D residuals").
-        kernel: how the LM normal equations and the step are computed: ``torch`` (vectorised,
-            any device, differentiable; kornia's exponential), ``compiled`` (one numba loop over
-            the pixels and the closed-form exponential ``vo.lie.se3_exp_fast``, CPU without
-            gradients: 4x faster per evaluation at 16k pixels, float64 sums, equal to ``torch``
-            to float32 rounding; ``vo.solver_kernels``) or ``auto`` (the default: compiled where
-            it can run, torch elsewhere, e.g. where the declarative layer differentiates).
+            camera frame (frame2frame, and frame2model's fallback to the last frame); not against
+            a model view, whose fused depth carries few of the outliers the step is for (there it
+            changed the ATE by 1 % for 20-35 % more frame time; docs/experiments.md).
     """
 
     method: str = "lm"
     max_iters: int = 30
-    step_tol: float = 1e-6
-    cost_rtol: float = 1e-6
-    lbfgs_max_iters: int = 100
     max_translation_mm: float = 20.0
     max_rotation_deg: float = 15.0
     min_valid_pixels: int = 200
     init: str = "identity"
     max_pixels: int = 16384
     robust_3d_mm: float = 0.5
-    robust_3d_model_mm: float = 0.0
-    kernel: str = "auto"
 
 
 @dataclass
 class WeightsConfig:
-    """Per-pixel residual weights (paper eqs. 4-5).
+    """Per-pixel residual weights (paper eqs. 5-6).
 
     Attributes:
         mode: ``learned`` (weight networks from ``checkpoint``) or ``constant`` (``w2d``, ``w3d``).
         residuals: ``2d3d`` | ``2d`` | ``3d`` (ablation: the other weight is zero).
         w2d, w3d: the constant weights; their defaults come from the sweep of the 2D/3D balance on
-            the 1200 training pairs in ``tools/sweep_constant_weights.py`` (README, "Constant
-            weights"): w3d/w2d = 0.01 gave the lowest pose error (w = 1 for both: 3.9x higher).
-        checkpoint: weight-network checkpoint; empty = the packaged one for ``residuals`` (with
-            ``depth.temporal_gain`` < 1 the packaged ``weights_{residuals}_filtered.pt``, trained on
-            filtered depth, where there is one).
+            the 1200 training pairs in ``tools/sweep_constant_weights.py`` (docs/experiments.md): w3d/w2d = 0.01 gave the lowest pose error (w = 1 for both: 3.9x higher).
+        checkpoint: weight-network checkpoint; empty = the packaged one for ``residuals``
+            (``vo/checkpoints/weights_{residuals}.pt``; for 2d3d with the depth filter on,
+            ``weights_2d3d_filtered.pt`` weighs the frames whose depth is filtered).
         checkpoint_model: the checkpoint used when the reference is a view rendered from the map
             (frame2model); empty = the packaged ``weights_{residuals}_model.pt`` when
             ``checkpoint`` is empty and that file exists, else the networks of ``checkpoint``
-            (README, "Training the weight networks": which networks track best against the model).
-        downscale: the networks run at 1/downscale of the image size (the authors use 8).
+            (docs/training.md).
     """
 
     mode: str = "learned"
@@ -185,4 +150,3 @@ class WeightsConfig:
     w3d: float = 0.01
     checkpoint: str = ""
     checkpoint_model: str = ""
-    downscale: int = 8

@@ -17,7 +17,7 @@ import torch
 
 from vo.config import SolverConfig
 from vo.residuals import PoseProblem, objective_se3
-from vo.solver import solve_pose
+from vo.solver import DECLARATIVE, Tolerance, solve_pose
 
 
 def exact_hessian(p: torch.Tensor, prob: PoseProblem) -> tuple[torch.Tensor, torch.Tensor]:
@@ -43,13 +43,13 @@ def damp(H: torch.Tensor, rel: float = 1e-8) -> torch.Tensor:
 
 
 class DeclarativePose(torch.autograd.Function):
-    """``p* (B, 6) = DeclarativePose.apply(w2d (B, N), w3d (B, N), prob, config, grad_tol)``."""
+    """``p* (B, 6) = DeclarativePose.apply(w2d (B, N), w3d (B, N), prob, config, grad_tol, tol)``."""
 
     @staticmethod
-    def forward(ctx, w2d, w3d, prob: PoseProblem, config: SolverConfig, grad_tol: float):
+    def forward(ctx, w2d, w3d, prob: PoseProblem, config: SolverConfig, grad_tol: float, tol: Tolerance):
         prob64 = replace(prob.to(torch.float64), w2d=w2d.detach().double(), w3d=w3d.detach().double())
         with torch.no_grad():
-            res = solve_pose(prob64, config)
+            res = solve_pose(prob64, config, tol=tol)
         p = res.p.double()
         cost_scale = res.cost.abs().clamp(min=1e-30)
         ok = torch.isfinite(p).all(1) & torch.isfinite(res.cost)
@@ -65,7 +65,7 @@ class DeclarativePose(torch.autograd.Function):
     def backward(ctx, grad_p, _grad_ok):
         w2d, w3d, p, ok = ctx.saved_tensors
         if not bool(ok.any()):
-            return torch.zeros_like(w2d), torch.zeros_like(w3d), None, None, None
+            return torch.zeros_like(w2d), torch.zeros_like(w3d), None, None, None, None
         with torch.enable_grad():
             w2 = w2d.detach().double().requires_grad_(True)
             w3 = w3d.detach().double().requires_grad_(True)
@@ -77,11 +77,11 @@ class DeclarativePose(torch.autograd.Function):
             gw2, gw3 = torch.autograd.grad(g, (w2, w3), grad_outputs=-u, allow_unused=True)
         gw2 = torch.zeros_like(w2d) if gw2 is None else gw2.to(w2d.dtype)
         gw3 = torch.zeros_like(w3d) if gw3 is None else gw3.to(w3d.dtype)
-        return gw2, gw3, None, None, None
+        return gw2, gw3, None, None, None, None
 
 
 def declarative_pose(w2d: torch.Tensor, w3d: torch.Tensor, prob: PoseProblem, config: SolverConfig,
-                     grad_tol: float = 1e-4) -> tuple[torch.Tensor, torch.Tensor]:
+                     grad_tol: float = 1e-4, tol: Tolerance = DECLARATIVE) -> tuple[torch.Tensor, torch.Tensor]:
     """Solve the weighted pose problem and make the optimum differentiable w.r.t. the weights.
 
     Args:
@@ -89,8 +89,9 @@ def declarative_pose(w2d: torch.Tensor, w3d: torch.Tensor, prob: PoseProblem, co
         prob: the fixed data (its own weights are ignored).
         config: solver settings of the forward pass.
         grad_tol: a sample is a minimum when ``|grad f| / f`` is below this.
+        tol: the forward solve's stopping rule (default: a true minimum, torch's normal equations).
 
     Returns:
         ``p*`` ``(B, 6)`` (zeros for failed samples) and ``ok`` ``(B,)`` bool.
     """
-    return DeclarativePose.apply(w2d, w3d, prob, config, grad_tol)
+    return DeclarativePose.apply(w2d, w3d, prob, config, grad_tol, tol)

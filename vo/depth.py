@@ -6,6 +6,10 @@ import torch
 from vo.config import DepthConfig
 from vo.geometry import flow_grid, sample_by_flow, sample_valid_by_flow
 
+# Smaller disparities are invalid: at the depths an endoscope sees (20-250 mm) disparities are tens
+# of pixels, so this only drops the stereo matcher's zero and negative matches.
+MIN_DISPARITY_PX = 0.5
+
 
 def depth_from_parallax(parallax: torch.Tensor, fx_baseline: float, config: DepthConfig,
                         mask: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -19,10 +23,10 @@ def depth_from_parallax(parallax: torch.Tensor, fx_baseline: float, config: Dept
 
     Returns:
         depth ``(B, 1, H, W)`` mm (0 where invalid) and valid ``(B, 1, H, W)`` bool. Invalid:
-        disparity below ``min_disparity_px``, depth outside ``[min_depth_mm, max_depth_mm]``, masked.
+        disparity below ``MIN_DISPARITY_PX``, depth outside ``[min_depth_mm, max_depth_mm]``, masked.
     """
     disparity = -parallax[:, 0:1]
-    valid = disparity > config.min_disparity_px
+    valid = disparity > MIN_DISPARITY_PX
     depth = fx_baseline / disparity.clamp(min=1e-6)
     valid = valid & (depth >= config.min_depth_mm) & (depth <= config.max_depth_mm)
     if mask is not None:
@@ -87,38 +91,12 @@ def filter_depth_along_flow(depth: torch.Tensor, valid: torch.Tensor, ref_depth:
     """
     if gain >= 1.0:
         return depth
-    return filter_depth_and_velocity_along_flow(depth, valid, ref_depth, ref_valid, flow, flow_ok, gain, gate_mm)[0]
-
-
-def filter_depth_and_velocity_along_flow(depth: torch.Tensor, valid: torch.Tensor, ref_depth: torch.Tensor,
-                                         ref_valid: torch.Tensor, flow: torch.Tensor, flow_ok: torch.Tensor | None,
-                                         gain: float, gate_mm: float, ref_velocity: torch.Tensor | None = None,
-                                         velocity_gain: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`filter_depth_along_flow` with a depth velocity per pixel (an alpha-beta filter).
-
-    The prediction is ``p = d_ref(x + F) + v_ref(x + F)`` and, besides ``d = p + gain (d_stereo -
-    p)``, the velocity is updated as ``v = v_ref(x + F) + velocity_gain (d_stereo - p)``: where the
-    camera's motion in depth changes, the plain filter's lag changes with it and biases the depth
-    change between two frames; the velocity follows it. ``ref_velocity`` ``(B, 1, H, W)`` mm per
-    frame or None (zero); ``velocity_gain`` 0 is the plain filter.
-
-    Returns:
-        ``(depth, velocity)``, each ``(B, 1, H, W)``; the velocity is 0 where the pixel kept its
-        stereo depth (no prediction, or beyond the gate), and None when ``velocity_gain`` is 0.
-    """
     grid = flow_grid(flow)
     carried = sample_by_flow(ref_depth, flow, grid=grid)
     # every bilinear neighbour must be valid: a mix with an invalid (0) depth is no prediction
     use = valid & sample_valid_by_flow(ref_valid, flow, grid) & (carried > 0)
     if flow_ok is not None:
         use = use & flow_ok
-    if velocity_gain <= 0:
-        innovation = depth - carried
-        use = use & (innovation.abs() <= gate_mm)
-        return torch.where(use, carried + gain * innovation, depth), None
-    velocity = torch.zeros_like(depth) if ref_velocity is None else sample_by_flow(ref_velocity, flow, grid=grid)
-    predicted = carried + velocity
-    innovation = depth - predicted
+    innovation = depth - carried
     use = use & (innovation.abs() <= gate_mm)
-    return (torch.where(use, predicted + gain * innovation, depth),
-            torch.where(use, velocity + velocity_gain * innovation, torch.zeros_like(depth)))
+    return torch.where(use, carried + gain * innovation, depth)

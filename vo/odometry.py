@@ -1,9 +1,20 @@
 """Stereo visual odometry: a stereo pair in, the relative pose to a reference view out.
 
-``StereoOdometry.make_view`` turns a rectified stereo pair into a ``View`` (image, depth from the
-stereo parallax flow, validity, parallax). ``track`` estimates the pose of a current view relative
-to a reference view (the previous frame in frame2frame, a rendered model view in frame2model):
-temporal flow, residuals, weight maps, NLLS. ``register`` is the frame2frame loop in one call.
+``StereoOdometry`` is stateless per call. ``make_view`` turns a rectified stereo pair into a
+``View`` (image, depth from the stereo parallax flow, validity, parallax); ``view_from_render``
+turns a view rendered from the map into one. ``track`` estimates the pose of a current view
+relative to a reference view (the previous frame or a keyframe in frame2frame, a model view in
+frame2model) in the paper's steps:
+
+1. correspondences: the temporal flow F_t of the current view against the reference;
+2. depth: the current stereo depth D_t, optionally filtered along the flow (a still camera);
+3. residual problem: the 2D and 3D residuals of eqs. 1-2 over the pixels the flow can serve;
+4. weight maps: w2D, w3D of eqs. 5-6 (learned networks or constants);
+5. solve: p* of eq. 4 by non-linear least squares on se(3) (objective of eq. 3, squared terms);
+6. check: a pose that is not finite, implausibly large or supported by too few pixels fails.
+
+The per-sequence state (which reference, when to filter, the last motion) belongs to the caller
+(``slam.tracker.Tracker``).
 """
 from __future__ import annotations
 
@@ -11,7 +22,7 @@ import logging
 import time
 import weakref
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 import torch
@@ -20,15 +31,13 @@ from vo.camera import StereoCamera
 from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
 from vo.correspondence import make_flow_estimators
 from vo.correspondence.dis import DisFlow, to_gray_u8
-from vo.depth import (depth_from_parallax, filter_depth_and_velocity_along_flow, flow_consistency, parallax_from_depth,
+from vo.depth import (depth_from_parallax, filter_depth_along_flow, flow_consistency, parallax_from_depth,
                       vertical_parallax_ok)
 from vo.geometry import backproject, flow_grid, lands_inside, pixel_grid, sample_by_flow, sample_valid_by_flow
 from vo.lie import rotation_angle_deg
-from vo.motion_memory import relative_residual, update_memory
 from vo.residuals import PoseProblem, residuals
-from vo.solver import solve_pose
-from vo.weights import (WeightInputs, WeightNetworks, constant_weights, load_weight_networks, rigid_prior_flow,
-                        model_reference_checkpoint, uses_map_depth, uses_motion_memory, uses_rigid_flow)
+from vo.solver import SolverResult, solve_pose
+from vo.weights import TrackingNetworks, WeightInputs, constant_weights, load_tracking_networks
 
 log = logging.getLogger(__name__)
 
@@ -58,25 +67,20 @@ class View:
             marks only its covered pixels (those fill pixels give no residual).
         masked: ``(H, W)`` bool numpy, the pixels the frame's mask excludes (specular
             highlights, instruments, dark corners), or None (no mask given).
+        from_model: the view's depth is the map's, rendered at a pose (a model view).
         rendered: the view's image is the model's colour (it shows no highlights or
             instruments); False for a real frame and for a model view seen with a real frame's
             pixels.
+        image_of: the real view whose image this one shows (a model view seen with the last
+            frame's pixels), whose flows serve this view; else None.
         flow_input: the image and grey image with the masked pixels inpainted, kept once
             computed (:meth:`StereoOdometry._flow_input`: a frame is flowed against a model
-            view in its tracking pass, its refinement passes and, chained, as the last frame).
-        model_depth: ``(1, 1, H, W)`` depth in mm of the map rendered at this view's pose after it
-            was fused (0 where the map does not cover it), or None: the input of layout-4 weight
-            networks when the view is a reference (:meth:`StereoOdometry.needs_map_depth`).
+            view in its tracking pass and its refinement passes).
         flow_ahead: the temporal flow of this view against an earlier real view, computed
             before it was needed (:meth:`StereoOdometry.flow_ahead`): a weak reference to that
-            view, the flow and the forward-backward mask; taken once by the tracking that uses it.
+            view and its :class:`Correspondences`; taken once by the tracking that uses it.
         stereo_depth: the view's own stereo depth once ``depth`` holds it filtered along the flow
-            (``depth.temporal_gain`` < 1, :meth:`StereoOdometry.filter_depth`), else None.
-        motion_memory: ``(1, 4, H, W)`` where the tissue seen in this view has been moving
-            (:mod:`vo.motion_memory`), set when it was tracked against a camera frame for
-            layout-5 weight networks (:meth:`StereoOdometry.remember_motion`), else None.
-        depth_velocity: ``(1, 1, H, W)`` mm per frame, the filter's depth velocity where ``depth`` was
-            filtered with ``depth.temporal_velocity_gain`` > 0, else None.
+            (:meth:`StereoOdometry.filter_depth`), else None.
     """
 
     image: torch.Tensor
@@ -86,13 +90,43 @@ class View:
     parallax: torch.Tensor
     matchable: torch.Tensor | None = None
     masked: np.ndarray | None = None
+    from_model: bool = False
     rendered: bool = False
+    image_of: "View | None" = field(default=None, repr=False)
     flow_input: tuple[torch.Tensor, np.ndarray] | None = field(default=None, repr=False)
-    model_depth: torch.Tensor | None = field(default=None, repr=False)
-    flow_ahead: tuple[weakref.ref, torch.Tensor, torch.Tensor | None] | None = field(default=None, repr=False)
+    flow_ahead: tuple[weakref.ref, "Correspondences"] | None = field(default=None, repr=False)
     stereo_depth: torch.Tensor | None = field(default=None, repr=False)
-    motion_memory: torch.Tensor | None = field(default=None, repr=False)
-    depth_velocity: torch.Tensor | None = field(default=None, repr=False)
+
+
+class Correspondences(NamedTuple):
+    """The temporal flow of a current view against another view (step 1).
+
+    Attributes:
+        flow: ``(1, 2, H, W)`` pixels, current -> other.
+        ok: ``(1, 1, H, W)`` bool flows that passed the forward-backward check
+            (``correspondence.fb_check_px``), or None (no check ran).
+    """
+
+    flow: torch.Tensor
+    ok: torch.Tensor | None
+
+
+class ResidualProblem(NamedTuple):
+    """What the residuals of eqs. 1-2 compare, per pixel of the current view (step 3).
+
+    Attributes:
+        target: ``(1, 2, H, W)`` pixels ``x + F_t(x)``, where eq. 1 wants the projection.
+        valid: ``(1, 1, H, W)`` bool pixels with a 2D residual.
+        valid3: ``(1, 1, H, W)`` bool pixels that also have a 3D residual (the flow lands on
+            valid reference depth).
+        points_ref: ``(1, 3, H, W)`` the reference's points at ``x + F_t(x)``, normalised by
+            ``depth.max_depth_mm`` (eq. 2's ``pi_3D(D_{t-1}, x + F_t(x))``).
+    """
+
+    target: torch.Tensor
+    valid: torch.Tensor
+    valid3: torch.Tensor
+    points_ref: torch.Tensor
 
 
 @dataclass
@@ -135,15 +169,15 @@ class StereoOdometry:
         camera: the rectified stereo camera (all views share it).
         config: VO configuration.
         device: torch device.
-        weight_networks: networks to use in ``learned`` mode (loaded from the config's checkpoint
-            when None).
+        networks: weight networks to use in ``learned`` mode (loaded from the config's
+            checkpoints when None).
         weight_hook: optional ``hook(cur, ref, flow, w2d, w3d) -> (w2d, w3d)`` applied to the weight
             maps before every solve (analysis: ``tools/oracle_weights.py`` masks them with ground
             truth); ``(1, 1, H, W)`` maps, ``flow`` the temporal flow ``(1, 2, H, W)``.
     """
 
     def __init__(self, camera: StereoCamera, config: VOConfig, device: str = "cpu",
-                 weight_networks: WeightNetworks | None = None,
+                 networks: TrackingNetworks | None = None,
                  weight_hook: Callable[..., tuple[torch.Tensor, torch.Tensor]] | None = None):
         self.weight_hook = weight_hook
         self.camera = camera
@@ -151,28 +185,15 @@ class StereoOdometry:
         self.device = torch.device(device)
         self.K = camera.K_tensor(self.device)
         self.temporal_flow, self.stereo_flow = make_flow_estimators(config.correspondence, device)
-        self.weight_networks = None
-        self.model_weight_networks = None   # against views rendered from the map (None: the same)
-        self.unfiltered_weight_networks = None  # for frames left unfiltered (depth.temporal_still_mm; None: the same)
-        self.weight_meta: dict = {}
-        if config.weights.mode == "learned":
-            wcfg = config.weights
-            if weight_networks is None:
-                weight_networks, self.weight_meta = load_weight_networks(
-                    wcfg.checkpoint, wcfg.residuals, device, filtered_depth=config.depth.temporal_gain < 1.0)
-                model_path = model_reference_checkpoint(wcfg.checkpoint, wcfg.checkpoint_model, wcfg.residuals)
-                if model_path is not None:
-                    self.model_weight_networks = load_weight_networks(model_path, wcfg.residuals, device)[0].to(self.device).eval()
-                if config.depth.temporal_gain < 1.0 and config.depth.temporal_still_mm > 0 and not wcfg.checkpoint:
-                    self.unfiltered_weight_networks = load_weight_networks("", wcfg.residuals, device)[0].to(self.device).eval()
-            self.weight_networks = weight_networks.to(self.device).eval()
-            warn_depth_filter_mismatch(self.weight_meta, config.depth.temporal_gain, wcfg.checkpoint)
-        elif config.weights.mode != "constant":
-            raise ValueError(f"unknown weights.mode '{config.weights.mode}' (learned, constant)")
+        self.networks: TrackingNetworks | None = None
+        wcfg, dcfg = config.weights, config.depth
+        if wcfg.mode == "learned":
+            self.networks = networks.to(self.device) if networks is not None else load_tracking_networks(
+                wcfg.checkpoint, wcfg.checkpoint_model, wcfg.residuals, dcfg.temporal_gain, dcfg.temporal_still_mm,
+                device)
+        elif wcfg.mode != "constant":
+            raise ValueError(f"unknown weights.mode '{wcfg.mode}' (learned, constant)")
         self._ahead_flow_estimator = None   # the look-ahead thread's own temporal flow (flow_ahead)
-        self.reference: View | None = None
-        self.pose = np.eye(4)  # T_wc of the rectified left camera, mm
-        self.previous_relative = np.eye(4)
 
     # ---------------------------------------------------------------- views
     def _flow(self, estimator, a_img: torch.Tensor, a_gray: np.ndarray, b_img: torch.Tensor, b_gray: np.ndarray) -> torch.Tensor:
@@ -191,7 +212,7 @@ class StereoOdometry:
             mask: ``(H, W)`` bool valid tissue pixels, or None.
             gt_depth: ``(H, W)`` float depth in mm to use instead of stereo depth (error budget).
             specular: ``(2, H, W)`` bool specular highlights of the left and right views, or
-                None; inpainted for the stereo match (``correspondence.stereo_inpaint_px``).
+                None; inpainted for the stereo match (``correspondence.inpaint_px``).
         """
         t0 = time.perf_counter()
         img_l = image_tensor(left, self.device)
@@ -211,15 +232,15 @@ class StereoOdometry:
             gray_r = to_gray_u8(img_r[0])
             ccfg = self.config.correspondence
             st_l, st_r = (img_l, gray_l), (img_r, gray_r)
-            if specular is not None and ccfg.stereo_inpaint_px > 0:
+            if specular is not None and ccfg.inpaint_px > 0:
                 need_image = not isinstance(self.stereo_flow, DisFlow)
                 if specular[0].any():
-                    st_l = inpaint_masked(img_l, gray_l, specular[0], ccfg.stereo_inpaint_px, need_image)
+                    st_l = inpaint_masked(img_l, gray_l, specular[0], ccfg.inpaint_px, need_image)
                 if specular[1].any():
-                    st_r = inpaint_masked(img_r, gray_r, specular[1], ccfg.stereo_inpaint_px, need_image)
+                    st_r = inpaint_masked(img_r, gray_r, specular[1], ccfg.inpaint_px, need_image)
             parallax = self._flow(self.stereo_flow, *st_l, *st_r)
             depth, valid = depth_from_parallax(parallax, fxb, dcfg, valid_mask)
-            if specular is not None and ccfg.stereo_inpaint_px > 0 and specular[1].any():
+            if specular is not None and ccfg.inpaint_px > 0 and specular[1].any():
                 # a match that lands on the right view's highlight found no tissue there
                 seen_r = torch.from_numpy(~np.asarray(specular[1], dtype=bool)).to(self.device)[None, None]
                 valid &= sample_valid_by_flow(seen_r, parallax)
@@ -270,226 +291,177 @@ class StereoOdometry:
         return View(image=image, gray=gray, depth=depth, valid=valid,
                     parallax=parallax_from_depth(depth, self.camera.depth_from_disparity_scale()),
                     matchable=None if background is None or background_matchable else covered,
-                    rendered=color is not None)
+                    from_model=True, rendered=color is not None,
+                    image_of=background if color is None else None)
 
     # ---------------------------------------------------------------- tracking
-    def _weights(self, cur: View, ref: View, flow: torch.Tensor, problem: tuple,
-                 model_reference: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-        """``problem``: :meth:`build_problem`'s ``(target, valid, valid3, points_ref)``."""
-        wcfg = self.config.weights
-        valid = problem[1]
-        if self.weight_networks is None:
-            return constant_weights(valid, wcfg.w2d, wcfg.w3d, wcfg.residuals)
-        networks = self.model_weight_networks if model_reference and self.model_weight_networks is not None \
-            else self.weight_networks
-        if not model_reference and cur.stereo_depth is None and self.unfiltered_weight_networks is not None:
-            networks = self.unfiltered_weight_networks      # a moving camera's frame keeps its stereo depth
-        dmax = self.config.depth.max_depth_mm
-        rigid = self.rigid_flow(cur, flow, problem) if uses_rigid_flow(networks.inputs) else None
-        model_depth = None
-        if uses_map_depth(networks.inputs):   # a reference without a map view (a first frame, a model view): no deviation
-            model_depth = torch.zeros_like(ref.depth) if ref.model_depth is None else ref.model_depth / dmax
-        inp = WeightInputs(image_cur=cur.image, depth_cur=cur.depth / dmax, flow=flow, parallax_cur=cur.parallax,
-                           image_ref=ref.image, depth_ref=ref.depth / dmax, parallax_ref=ref.parallax, valid=valid,
-                           rigid_flow=rigid, model_depth_ref=model_depth,
-                           motion_memory_ref=ref.motion_memory if uses_motion_memory(networks.inputs) else None)
-        with torch.inference_mode():
-            return networks(inp)
+    def track(self, cur: View, ref: View, init: np.ndarray | None = None,
+              filter_against: View | None = None) -> TrackResult:
+        """Estimate the transform from ``cur``'s camera to ``ref``'s camera.
 
-    def keeps_motion_memory(self) -> bool:
-        """Some frame-reference weight networks take the reference's motion memory (layout 5)."""
-        return any(n is not None and uses_motion_memory(n.inputs)
-                   for n in (self.weight_networks, self.unfiltered_weight_networks))
-
-    def remember_motion(self, cur: View, ref: View, flow: torch.Tensor, problem: tuple, T: torch.Tensor,
-                        points_cur: torch.Tensor | None = None) -> None:
-        """Set ``cur.motion_memory``: ``ref``'s carried along ``flow`` plus the 3D residual of every
-        pixel at the pose ``T`` ``(1, 4, 4)`` (current -> reference, translation normalised by
-        ``depth.max_depth_mm``); ``problem`` is :meth:`build_problem`'s; ``points_cur`` ``(1, 3, H,
-        W)`` ``cur``'s normalised points if already computed. Between camera frames only (a model
-        view's depth is the map's, not the tissue as this frame saw it)."""
-        if cur.rendered or ref.rendered:
-            return
-        _, _, valid3, points_ref = problem
-        if points_cur is None:
-            points_cur = backproject(cur.depth / self.config.depth.max_depth_mm, self.K)
-        residual = relative_residual(points_cur, points_ref, T, valid3)
-        cur.motion_memory = update_memory(ref.motion_memory, flow, residual, valid3)
-
-    def needs_map_depth(self) -> bool:
-        """The frame-reference weight networks take the map's depth at the reference's pose
-        (layout 4): whoever keeps a map sets ``View.model_depth`` on each reference."""
-        return self.weight_networks is not None and uses_map_depth(self.weight_networks.inputs)
-
-    def rigid_flow(self, cur: View, flow: torch.Tensor, problem: tuple) -> torch.Tensor:
-        """``(1, 2, H, W)``: the flow of the rigid motion solved with the constant weights
-        (``weights.w2d`` / ``w3d``, both residuals), the input of layout-3 weight networks; the
-        measured flow itself (a zero residual) where that solve has too few pixels or fails."""
-        target, valid, valid3, points_ref = problem
-        wcfg, scfg = self.config.weights, self.config.solver
-        dmax = self.config.depth.max_depth_mm
-        w2, w3 = constant_weights(valid, wcfg.w2d, wcfg.w3d, "2d3d")
-        points_cur = backproject(cur.depth / dmax, self.K)
-        prob = self._pose_problem(points_cur, target, points_ref, w2, w3 * valid3)
-        if prob.w2d.shape[1] < scfg.min_valid_pixels:
-            return flow
-        T = solve_pose(prob.subsample(scfg.max_pixels), scfg).T
-        if not bool(torch.isfinite(T).all()):
-            return flow
-        return rigid_prior_flow(points_cur, flow, T, self.K)
-
-    def _pose_problem(self, points_cur: torch.Tensor, target: torch.Tensor, points_ref: torch.Tensor,
-                      w2d: torch.Tensor, w3d: torch.Tensor) -> PoseProblem:
-        """The objective over every pixel with a non-zero weight: ``points_cur``, ``points_ref``
-        ``(1, 3, H, W)`` (normalised), ``target`` ``(1, 2, H, W)`` pixels, weights ``(1, 1, H, W)``."""
-        s2, s3 = PoseProblem.scales(*target.shape[-2:])
-        return PoseProblem(points_cur=points_cur.flatten(2), target_px=target.flatten(2),
-                           points_ref=points_ref.flatten(2), w2d=w2d.flatten(1), w3d=w3d.flatten(1),
-                           K=self.K[None], s2=s2, s3=s3).compact()
-
-    def build_problem(self, cur: View, ref: View, flow: torch.Tensor, flow_valid: torch.Tensor | None = None):
-        """The pose problem of ``cur`` against ``ref`` given the temporal flow.
-
-        Returns:
-            (problem, valid ``(1, 1, H, W)`` bool, valid3d ``(1, 1, H, W)`` bool)
+        Args:
+            cur: the current view (a real frame).
+            ref: the reference view: a camera frame, or a model view (``ref.from_model``: weighed
+                by the model-view networks, no robust 3D step).
+            init: ``(4, 4)`` mm initial guess (identity when None).
+            filter_against: the real frame before ``cur`` to filter ``cur``'s stereo depth
+                against along the flow (:meth:`filter_depth`; it may be ``ref``, or the frame
+                before ``cur`` when ``ref`` is an older keyframe); None: ``cur`` keeps its own
+                stereo depth.
         """
+        timings: dict = {}
+        t0 = time.perf_counter()
+        # 1. correspondences (the flow to the filter's frame first: a flow kept ahead is taken once)
+        filter_corr = None
+        if filter_against is not None and filter_against is not ref:
+            filter_corr = self.correspondences(cur, filter_against)
+        corr = self.correspondences(cur, ref)
+        cur.flow_ahead = None
+        # 2. depth
+        self.filter_depth(cur, filter_against, corr if filter_corr is None else filter_corr)
+        t1 = time.perf_counter()
+        # 3. the residual problem (eqs. 1-2) and 4. the weight maps (eqs. 5-6)
+        problem = self.residual_problem(cur, ref, corr)
+        w2d, w3d = self.weight_maps(cur, ref, corr, problem)
+        t2 = time.perf_counter()
+        # 5. solve (eq. 4)
+        result, n_valid = self.solve(cur, problem, w2d, w3d, init, robust=not ref.from_model)
+        t3 = time.perf_counter()
+        # 6. check
+        relative, reason = self.check(result, n_valid)
+        timings.update(flow=(t1 - t0) * 1000.0, weights=(t2 - t1) * 1000.0, solve=(t3 - t2) * 1000.0)
+        return TrackResult(relative=relative, failed=bool(reason), reason=reason,
+                           iterations=0 if result is None else result.iterations,
+                           cost=float("nan") if result is None else float(result.cost[0]),
+                           valid_pixels=n_valid, flow=corr.flow, w2d=w2d, w3d=w3d, timings_ms=timings)
+
+    def correspondences(self, cur: View, against: View) -> Correspondences:
+        """Step 1: the temporal flow ``cur -> against`` (against the real view whose pixels
+        ``against`` shows, if any): the one :meth:`flow_ahead` kept on ``cur`` when it goes against
+        that view, else computed now."""
+        against = against.image_of if against.image_of is not None else against
+        ahead = cur.flow_ahead
+        if ahead is not None and ahead[0]() is against:
+            return ahead[1]
+        return self._pair_flow(self.temporal_flow, cur, against)
+
+    def filters_depth(self) -> bool:
+        """Whether the depth filter is on (``depth.temporal_gain`` < 1)."""
+        return self.config.depth.temporal_gain < 1.0
+
+    def filter_depth(self, cur: View, against: View | None, corr: Correspondences) -> None:
+        """Step 2: with ``against`` (a real frame before ``cur``) and the filter on, replace
+        ``cur.depth`` by its stereo depth filtered along ``corr`` (``cur -> against``) against
+        ``against``'s depth (:func:`vo.depth.filter_depth_along_flow`) and keep the stereo depth
+        in ``cur.stereo_depth``; else ``cur`` keeps (or gets back) its own stereo depth. Tracking
+        ``cur`` again starts from its stereo depth, never the filtered one."""
+        dcfg = self.config.depth
+        if cur.stereo_depth is not None:
+            cur.depth, cur.stereo_depth = cur.stereo_depth, None
+        if against is None or not self.filters_depth():
+            return
+        if cur.from_model or against.from_model:
+            raise ValueError("filter_depth: only between real frames (a model view's depth is fused already)")
+        cur.stereo_depth = cur.depth
+        cur.depth = filter_depth_along_flow(cur.stereo_depth, cur.valid, against.depth, against.valid, corr.flow,
+                                            corr.ok, dcfg.temporal_gain, dcfg.temporal_gate_mm)
+
+    def residual_problem(self, cur: View, ref: View, corr: Correspondences) -> ResidualProblem:
+        """Step 3: what the residuals of eqs. 1-2 compare, given the temporal flow (the pixels
+        whose flow lands inside the reference, passed the checks and, for the 3D residual, lands
+        on valid reference depth)."""
+        flow = corr.flow
         _, _, H, W = flow.shape
         dmax = self.config.depth.max_depth_mm
         target = pixel_grid(H, W, flow.device, flow.dtype) + flow
         valid = cur.valid & lands_inside(flow, target)
-        if flow_valid is not None:
-            valid &= flow_valid
+        if corr.ok is not None:
+            valid &= corr.ok
         grid = flow_grid(flow, target)      # one sampling grid for the three maps drawn by the flow
         if ref.matchable is not None:
             valid &= sample_valid_by_flow(ref.matchable, flow, grid)
         valid3 = valid & sample_valid_by_flow(ref.valid, flow, grid)
         points_ref = sample_by_flow(backproject(ref.depth / dmax, self.K), flow, grid=grid)
-        return target, valid, valid3, points_ref
+        return ResidualProblem(target, valid, valid3, points_ref)
 
-    def track(self, cur: View, ref: View, flow_ref: View | None = None, T_init: np.ndarray | None = None,
-              chain_gain: float = 0.0, model_reference: bool = False, camera_still: bool = True,
-              filter_ref: View | None = None) -> TrackResult:
-        """Estimate the transform from ``cur``'s camera to ``ref``'s camera.
-
-        Args:
-            cur: the current view.
-            ref: the reference view (its depth gives the 3D residual's reference points).
-            flow_ref: the view the temporal flow is computed against (default ``ref``); in
-                frame2model it can be the last real frame, which sits at the reference pose.
-            T_init: ``(4, 4)`` mm initial guess (identity when None).
-            chain_gain: with ``flow_ref``, follow the temporal flow ``cur -> flow_ref`` on by
-                ``chain_gain`` x the (smoothed) flow ``flow_ref -> ref``, so that correspondences
-                move towards the pixels of ``ref`` that show the same surface points. In
-                frame2model the last real frame and the model view share the *estimated* pose, but
-                the real frame was taken at the true one: without the chain its pose error is
-                handed on to the next frame; the short flow between two views of the same pose
-                measures it, and a gain below 1 removes it over a few frames while damping the
-                render's flow noise (a complementary filter). 0: no chain.
-            model_reference: ``ref`` is a view rendered from the map: the weights come from the
-                model-reference networks (``weights.checkpoint_model``) and the robust 3D step uses
-                ``solver.robust_3d_model_mm`` instead of ``solver.robust_3d_mm``.
-            camera_still: the last tracked motion moved the camera less than
-                ``depth.temporal_still_mm`` (:meth:`camera_still`; the caller keeps the motion):
-                only then is ``cur``'s depth filtered (:meth:`filter_depth`).
-            filter_ref: the real frame ``cur``'s depth is filtered against when that is not
-                ``ref`` (a keyframe reference, ``tracking.keyframe_gap``: the filter runs from one
-                frame to the next, as in training, and the tracking against the keyframe sees the
-                filtered depths' change over the gap); None: ``ref``.
-        """
-        timings: dict = {}
-        t0 = time.perf_counter()
-        against = filter_ref if filter_ref is not None and self.filters_depth(cur, filter_ref, camera_still) else ref
-        # the flow to another frame first: _correspondences hands the read-ahead flow on only once
-        filter_flow = self._flow_against(cur, against) if against is not ref else None
-        flow, fb_ok = self._correspondences(cur, ref, flow_ref, chain_gain)
-        f_flow, f_ok = filter_flow if filter_flow is not None else (flow, fb_ok)
-        self.filter_depth(cur, against, f_flow, f_ok, camera_still)
-        t1 = time.perf_counter()
-        problem = self.build_problem(cur, ref, flow, fb_ok)
-        target, valid, valid3, points_ref = problem
-        w2d, w3d = self._weights(cur, ref, flow, problem, model_reference)
-        w3d = w3d * valid3
+    def weight_maps(self, cur: View, ref: View, corr: Correspondences,
+                    problem: ResidualProblem) -> tuple[torch.Tensor, torch.Tensor]:
+        """Step 4: the ``(1, 1, H, W)`` weight maps ``(w2d, w3d)`` of eqs. 5-6, zero where the
+        residual does not exist (``w3d`` off ``problem.valid3``)."""
+        wcfg = self.config.weights
+        if self.networks is None:
+            w2d, w3d = constant_weights(problem.valid, wcfg.w2d, wcfg.w3d, wcfg.residuals)
+        else:
+            networks = self.networks.select(model_reference=ref.from_model, filtered_depth=cur.stereo_depth is not None)
+            dmax = self.config.depth.max_depth_mm
+            inp = WeightInputs(image_cur=cur.image, depth_cur=cur.depth / dmax, flow=corr.flow,
+                               parallax_cur=cur.parallax, image_ref=ref.image, depth_ref=ref.depth / dmax,
+                               parallax_ref=ref.parallax, valid=problem.valid)
+            with torch.inference_mode():
+                w2d, w3d = networks(inp)
+        w3d = w3d * problem.valid3
         if self.weight_hook is not None:
-            w2d, w3d = self.weight_hook(cur, ref, flow, w2d, w3d)
-        t2 = time.perf_counter()
+            w2d, w3d = self.weight_hook(cur, ref, corr.flow, w2d, w3d)
+        return w2d, w3d
+
+    def solve(self, cur: View, problem: ResidualProblem, w2d: torch.Tensor, w3d: torch.Tensor,
+              init: np.ndarray | None = None, robust: bool = True) -> tuple[SolverResult | None, int]:
+        """Step 5: ``p* = argmin sum w2D |e2D|^2 + w3D |e3D|^2`` (eq. 4) over at most
+        ``solver.max_pixels`` of the weighted pixels, from ``init`` ``(4, 4)`` mm; with ``robust``
+        and ``solver.robust_3d_mm`` one Cauchy-reweighted step on the 3D residual follows.
+
+        Returns:
+            the solver's result (None when fewer than ``solver.min_valid_pixels`` pixels carry a
+            weight) and the number of weighted pixels.
+        """
+        scfg = self.config.solver
         dmax = self.config.depth.max_depth_mm
         points_cur = backproject(cur.depth / dmax, self.K)
-        prob = self._pose_problem(points_cur, target, points_ref, w2d, w3d)
+        s2, s3 = PoseProblem.scales(*problem.target.shape[-2:])
+        prob = PoseProblem(points_cur=points_cur.flatten(2), target_px=problem.target.flatten(2),
+                           points_ref=problem.points_ref.flatten(2), w2d=w2d.flatten(1), w3d=w3d.flatten(1),
+                           K=self.K[None], s2=s2, s3=s3).compact()
         n_valid = int(prob.w2d.shape[1])
-        prob = prob.subsample(self.config.solver.max_pixels)
-        scfg = self.config.solver
-        init = None
-        if T_init is not None:
-            Ti = torch.as_tensor(T_init, dtype=torch.float32, device=self.device).clone()
-            Ti[:3, 3] /= dmax
-            init = Ti[None]
-        failed, reason = False, ""
-        result = None
         if n_valid < scfg.min_valid_pixels:
-            failed, reason = True, f"only {n_valid} valid pixels"
-        else:
-            result = solve_pose(prob, scfg, init)
-            robust_mm = scfg.robust_3d_model_mm if model_reference else scfg.robust_3d_mm
-            if robust_mm > 0 and bool(torch.isfinite(result.T).all()):
-                robust = prob.with_weights(prob.w2d, prob.w3d * cauchy_weights_3d(prob, result.T, dmax, robust_mm))
-                result = solve_pose(robust, scfg, result.T)
-        t3 = time.perf_counter()
-        relative = np.eye(4)
-        if result is not None:
-            T = result.T[0].double().cpu()
-            if not bool(torch.isfinite(T).all()):
-                failed, reason = True, "non-finite pose"
-            else:
-                trans_mm = float(T[:3, 3].norm()) * dmax
-                rot_deg = float(rotation_angle_deg(T[None])[0])
-                if trans_mm > scfg.max_translation_mm:
-                    failed, reason = True, f"implausible motion {trans_mm:.1f} mm"
-                elif rot_deg > scfg.max_rotation_deg:
-                    failed, reason = True, f"implausible rotation {rot_deg:.1f} deg"
-                else:
-                    relative = T.numpy().copy()
-                    relative[:3, 3] *= dmax
-                    if not model_reference and self.keeps_motion_memory():
-                        self.remember_motion(cur, ref, flow, problem, result.T, points_cur)
-        timings.update(flow=(t1 - t0) * 1000.0, weights=(t2 - t1) * 1000.0, solve=(t3 - t2) * 1000.0)
-        return TrackResult(relative=relative, failed=failed, reason=reason,
-                           iterations=0 if result is None else result.iterations,
-                           cost=float("nan") if result is None else float(result.cost[0]),
-                           valid_pixels=n_valid, flow=flow, w2d=w2d, w3d=w3d, timings_ms=timings)
+            return None, n_valid
+        prob = prob.subsample(scfg.max_pixels)
+        T0 = None
+        if init is not None:
+            T0 = torch.as_tensor(init, dtype=torch.float32, device=self.device).clone()
+            T0[:3, 3] /= dmax
+            T0 = T0[None]
+        result = solve_pose(prob, scfg, T0)
+        if robust and scfg.robust_3d_mm > 0 and bool(torch.isfinite(result.T).all()):
+            robust_prob = prob.with_weights(prob.w2d, prob.w3d * cauchy_weights_3d(prob, result.T, dmax, scfg.robust_3d_mm))
+            result = solve_pose(robust_prob, scfg, result.T)
+        return result, n_valid
 
-    def camera_still(self, last_relative: np.ndarray) -> bool:
-        """Whether the last tracked motion, ``(4, 4)`` mm, moved the camera less than
-        ``depth.temporal_still_mm`` (always True when that is 0): :meth:`track`'s ``camera_still``."""
-        return moved_less_than(last_relative, self.config.depth.temporal_still_mm)
+    def check(self, result: SolverResult | None, n_valid: int) -> tuple[np.ndarray, str]:
+        """Step 6: the relative pose ``(4, 4)`` mm and '' if it can be trusted, else the identity
+        and why not (too few pixels, not finite, implausible motion)."""
+        if result is None:
+            return np.eye(4), f"only {n_valid} valid pixels"
+        scfg = self.config.solver
+        T = result.T[0].double().cpu()
+        if not bool(torch.isfinite(T).all()):
+            return np.eye(4), "non-finite pose"
+        dmax = self.config.depth.max_depth_mm
+        trans_mm = float(T[:3, 3].norm()) * dmax
+        rot_deg = float(rotation_angle_deg(T[None])[0])
+        if trans_mm > scfg.max_translation_mm:
+            return np.eye(4), f"implausible motion {trans_mm:.1f} mm"
+        if rot_deg > scfg.max_rotation_deg:
+            return np.eye(4), f"implausible rotation {rot_deg:.1f} deg"
+        relative = T.numpy().copy()
+        relative[:3, 3] *= dmax
+        return relative, ""
 
-    def filters_depth(self, cur: View, ref: View, filter_on: bool = True) -> bool:
-        """Whether :meth:`filter_depth` filters ``cur`` against ``ref`` (the filter on, two camera frames)."""
-        return self.config.depth.temporal_gain < 1.0 and filter_on and not (cur.rendered or ref.rendered)
-
-    def filter_depth(self, cur: View, ref: View, flow: torch.Tensor, flow_ok: torch.Tensor | None,
-                     filter_on: bool = True) -> None:
-        """With ``depth.temporal_gain`` < 1 and ``filter_on``, replace ``cur.depth`` by its stereo
-        depth filtered along ``flow`` (``cur -> ref``) against ``ref``'s depth
-        (:func:`vo.depth.filter_depth_along_flow`) and keep the stereo depth in
-        ``cur.stereo_depth`` (None: ``cur.depth`` is the stereo depth). Only between two camera
-        frames: a model view's depth is fused already, and a real frame tracked against one keeps
-        its own stereo depth. Tracking ``cur`` again starts from its stereo depth, never the filtered one."""
-        dcfg = self.config.depth
-        if cur.stereo_depth is not None:
-            cur.depth, cur.stereo_depth = cur.stereo_depth, None
-        cur.depth_velocity = None
-        if not self.filters_depth(cur, ref, filter_on):
-            return
-        cur.stereo_depth = cur.depth
-        cur.depth, cur.depth_velocity = filter_depth_and_velocity_along_flow(
-            cur.stereo_depth, cur.valid, ref.depth, ref.valid, flow, flow_ok, dcfg.temporal_gain,
-            dcfg.temporal_gate_mm, ref.depth_velocity, dcfg.temporal_velocity_gain)
-
+    # ---------------------------------------------------------------- flows
     def _flow_input(self, view: View, against: View) -> tuple[torch.Tensor, np.ndarray]:
         """``view``'s image and grey image for a temporal flow to ``against``: a real frame's
-        masked pixels inpainted when ``against`` is a model view
-        (``correspondence.inpaint_masked_px``), else as they are."""
-        radius = self.config.correspondence.inpaint_masked_px
+        masked pixels inpainted when ``against`` is a model view's colour
+        (``correspondence.inpaint_px``), else as they are."""
+        radius = self.config.correspondence.inpaint_px
         if not against.rendered or view.rendered or view.masked is None or radius <= 0:
             return view.image, view.gray
         if view.flow_input is None:
@@ -497,7 +469,7 @@ class StereoOdometry:
                                              need_image=not isinstance(self.temporal_flow, DisFlow))
         return view.flow_input
 
-    def _pair_flow(self, estimator, cur: View, against: View) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def _pair_flow(self, estimator, cur: View, against: View) -> Correspondences:
         """The temporal flow ``cur -> against`` and, with ``correspondence.fb_check_px``, the
         ``(1, 1, H, W)`` bool mask of flows that passed the forward-backward check (else None)."""
         cur_img, cur_gray = self._flow_input(cur, against=against)
@@ -506,7 +478,7 @@ class StereoOdometry:
         if self.config.correspondence.fb_check_px > 0:
             back = self._flow(estimator, against.image, against.gray, cur_img, cur_gray)
             fb_ok = flow_consistency(flow, back, self.config.correspondence.fb_check_px)
-        return flow, fb_ok
+        return Correspondences(flow, fb_ok)
 
     def can_flow_ahead(self) -> bool:
         """Whether :meth:`flow_ahead` can run in another thread (a classical backend: a second
@@ -516,91 +488,19 @@ class StereoOdometry:
     def flow_ahead(self, cur: View, against: View) -> None:
         """Compute the temporal flow ``cur -> against`` now, with an estimator of its own (safe in
         a read-ahead thread while :meth:`track` runs in another), and keep it on ``cur``: a
-        later :meth:`track` whose flow goes against ``against`` takes it instead of computing it
+        later :meth:`correspondences` against ``against`` takes it instead of computing it
         (same settings, same inputs: the same flow bit for bit). Both must be real frames."""
-        if cur.rendered or against.rendered:
+        if cur.from_model or against.from_model:
             raise ValueError("flow_ahead: only between real frames")
         if self._ahead_flow_estimator is None:
             self._ahead_flow_estimator = make_flow_estimators(self.config.correspondence, self.device)[0]
-        flow, fb_ok = self._pair_flow(self._ahead_flow_estimator, cur, against)
-        cur.flow_ahead = (weakref.ref(against), flow, fb_ok)
-
-    def _flow_against(self, cur: View, against: View) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The temporal flow ``cur -> against`` (:meth:`_pair_flow`): the one :meth:`flow_ahead`
-        kept on ``cur`` when it goes against that view, else computed now."""
-        ahead = cur.flow_ahead
-        if ahead is not None and ahead[0]() is against:
-            return ahead[1], ahead[2]
-        return self._pair_flow(self.temporal_flow, cur, against)
-
-    def _correspondences(self, cur: View, ref: View, flow_ref: View | None,
-                         chain_gain: float) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The temporal flow ``cur -> ref`` (through ``flow_ref``, see :meth:`track`) and the
-        ``(1, 1, H, W)`` bool mask of flows that passed the checks (None: no check ran)."""
-        chain = chain_gain > 0 and flow_ref is not None and flow_ref is not ref
-        flow_ref = flow_ref or ref
-        flow, fb_ok = self._flow_against(cur, flow_ref)
-        cur.flow_ahead = None
-        if chain:
-            last_img, last_gray = self._flow_input(flow_ref, against=ref)
-            to_ref = self._flow(self.temporal_flow, last_img, last_gray, ref.image, ref.gray)
-            # a pose offset moves a smooth surface smoothly: keep the field's low frequencies only
-            # (the render's blur and shading make the per-pixel flow noisy)
-            to_ref = masked_blur(to_ref, ref.valid & flow_ref.valid, 0.05) * chain_gain
-            flow, on_ref = chain_flows(flow, to_ref, ref.valid)
-            fb_ok = on_ref if fb_ok is None else fb_ok & on_ref
-        return flow, fb_ok
-
-    def weight_maps(self, cur: View, ref: View, timings: dict | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """The ``(1, 1, H, W)`` weight maps ``(w2d, w3d)`` of ``cur`` against ``ref`` as :meth:`track`
-        computes them, without solving for the pose (mapping with known poses)."""
-        t0 = time.perf_counter()
-        flow, fb_ok = self._correspondences(cur, ref, None, 0.0)
-        t1 = time.perf_counter()
-        problem = self.build_problem(cur, ref, flow, fb_ok)
-        w2d, w3d = self._weights(cur, ref, flow, problem)
-        valid3 = problem[2]
-        if timings is not None:
-            timings.update(flow=(t1 - t0) * 1000.0, weights=(time.perf_counter() - t1) * 1000.0)
-        return w2d, w3d * valid3
-
-    # ---------------------------------------------------------------- frame2frame
-    def register(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None = None,
-                 gt_depth: np.ndarray | None = None, specular: np.ndarray | None = None) -> TrackResult | None:
-        """Frame-to-frame odometry step: track the new pair against the previous one and chain.
-
-        Returns None for the first frame (it becomes the reference). On failure the pose and the
-        reference are kept (the next frame is tracked against the last good one).
-        """
-        timings: dict = {}
-        view = self.make_view(left, right, mask, gt_depth, timings, specular)
-        if self.reference is None:
-            self.reference = view
-            return None
-        T_init = self.previous_relative if self.config.solver.init == "constant_velocity" else None
-        result = self.track(view, self.reference, T_init=T_init, camera_still=self.camera_still(self.previous_relative))
-        result.timings_ms = {**timings, **result.timings_ms}
-        if not result.failed:
-            self.pose = self.pose @ result.relative
-            self.previous_relative = result.relative
-            self.reference = view
-        return result
+        cur.flow_ahead = (weakref.ref(against), self._pair_flow(self._ahead_flow_estimator, cur, against))
 
 
 def moved_less_than(relative: np.ndarray, still_mm: float) -> bool:
     """Whether the ``(4, 4)`` mm motion ``relative`` translated the camera less than ``still_mm``
     (always True when that is 0 or less: no threshold)."""
     return still_mm <= 0 or float(np.linalg.norm(relative[:3, 3])) < still_mm
-
-
-def warn_depth_filter_mismatch(meta: dict, temporal_gain: float, checkpoint: str) -> None:
-    """Log a warning when the weight networks were trained on depth filtered with another
-    ``depth.temporal_gain`` than tracking uses (their weights then suit another depth noise)."""
-    trained = (meta.get("train_config") or {}).get("depth", {}).get("temporal_gain", 1.0)
-    if abs(float(trained) - float(temporal_gain)) > 1e-9:
-        log.warning("the weight networks (%s) were trained with depth.temporal_gain=%g, tracking uses %g: "
-                    "their 3D weights suit another depth noise (README, \"Temporal depth filter\")",
-                    checkpoint or "packaged", float(trained), float(temporal_gain))
 
 
 def cauchy_weights_3d(prob: PoseProblem, T: torch.Tensor, max_depth_mm: float, scale_mm: float) -> torch.Tensor:
@@ -677,19 +577,3 @@ def masked_blur(x: torch.Tensor, mask: torch.Tensor, sigma_frac: float) -> torch
     if step > 1:
         out = torch.nn.functional.interpolate(out, size=(H, W), mode="bilinear", align_corners=False)
     return out
-
-
-def chain_flows(a_to_b: torch.Tensor, b_to_c: torch.Tensor, c_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Compose two flows: ``x -> x + a_to_b(x) -> that + b_to_c(that)``.
-
-    Args:
-        a_to_b: ``(B, 2, H, W)`` flow on view a's grid into view b.
-        b_to_c: ``(B, 2, H, W)`` flow on view b's grid into view c.
-        c_valid: ``(B, 1, H, W)`` bool valid pixels of view c.
-
-    Returns:
-        (``(B, 2, H, W)`` flow on a's grid into c, ``(B, 1, H, W)`` bool where the chain stays inside
-        both images and lands on valid pixels of c).
-    """
-    flow = a_to_b + sample_by_flow(b_to_c, a_to_b)
-    return flow, lands_inside(a_to_b) & sample_valid_by_flow(c_valid, flow)

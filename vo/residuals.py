@@ -1,4 +1,4 @@
-"""The paper's geometric residuals (eqs. 1-2) and the weighted objective (eqs. 3 and 6).
+"""The paper's geometric residuals (eqs. 1-2) and the weighted objective (eqs. 3 and 4).
 
 All quantities live in *normalised* units: depth and points are divided by the maximum expected
 depth (paper, Sec. 2.1), so the translation of the pose is in units of that depth and rotation and

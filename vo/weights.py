@@ -1,4 +1,4 @@
-"""The weight maps w2D and w3D (paper eqs. 4-5): two small UNets with sigmoid outputs, run at a
+"""The weight maps w2D and w3D (paper eqs. 5-6): two small UNets with sigmoid outputs, run at a
 reduced resolution and upsampled, and the constant alternative.
 
 Inputs of the networks (all at 1/``downscale`` of the image, area-averaged), layout version 2:
@@ -13,30 +13,12 @@ Inputs of the networks (all at 1/``downscale`` of the image, area-averaged), lay
 The last two groups make the non-rigid motion visible at the scale it has between frames (about
 0.02-0.1 mm, 0.1-0.4 px at 25 fps on our synthetic tissue); on the version-1 scales (kept for old
 checkpoints: 11 and 17 channels, without them) a 0.06 mm depth change is 2e-4 of the depth input.
-Layout version 3 (an experiment, stop 24) adds, after the sub-pixel flow, the flow's residual
-against the rigid motion of a first solve with the constant weights, ``asinh((F_t - F_rigid) / 0.5
-px)`` (2; ``WeightInputs.rigid_flow``): where the camera moves, its own flow hides the tissue's
-sub-pixel non-rigid motion in F_t; the residual shows it as it shows on a static camera. 15 and 22
-channels.
-Layout version 4 (an experiment, stop 25) adds instead, after the sub-pixel flow, how far the
-reference's depth stands off the map's (the surfel map fused from the frames up to the reference,
-rendered at its pose): ``asinh((D_ref - D_map) / D_ref / 0.003)`` and where the map covers the
-reference (2, on the reference grid, warped like the other reference maps; ``WeightInputs.
-model_depth_ref``). A map fused over many frames holds the tissue's mean shape, so the deviation is
-the whole breathing or pushing displacement rather than one frame's share of it, and it stays
-visible when the camera moves. 15 and 22 channels. (Trained with the shipped recipe it tracked worse
-than version 2: README, "Input layout 4".)
-Layout version 5 (stop 28) adds instead, after the sub-pixel flow, the reference's motion memory
-(:mod:`vo.motion_memory`: the 3D residual at the solved poses averaged over the last second along
-the flow, ``asinh(|mean| / 1e-4)`` relative to the depth, and how much history it holds; 2, on the reference grid, warped
-like the other reference maps; ``WeightInputs.motion_memory_ref``): where the tissue has been
-moving, which one pair's depth noise hides. 15 and 22 channels. (Trained with the shipped recipe it
-tracked worse than version 2, with and without the temporal depth filter: README, "Motion memory".)
 Flows are scaled by ``20 / W`` (a flow of 5 % of the width is 1); the vertical parallax by ``W0 / (2 W)``
 with ``W0 = 640`` (2 px at the paper's resolution is 1).
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,30 +27,16 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from vo.geometry import pixel_grid, project, sample_by_flow
-from vo.motion_memory import memory_features
+from vo.geometry import sample_by_flow
 
 INPUT_VERSION = 2
-IN_CHANNELS = {1: (11, 17), 2: (13, 20), 3: (15, 22), 4: (15, 22), 5: (15, 22)}  # input layout version -> (w2D, w3D) channels
+IN_CHANNELS = {1: (11, 17), 2: (13, 20)}  # input layout version -> (w2D, w3D) channels
 IN_CHANNELS_2D, IN_CHANNELS_3D = IN_CHANNELS[INPUT_VERSION]
 FLOW_FINE_PX = 0.5  # sub-pixel flow scale of the version-2 inputs
 DEPTH_CHANGE_REL = 0.003  # relative depth change scale (0.2 mm at 70 mm, the stereo noise at 1/8)
 CHECKPOINT_DIR = Path(__file__).parent / "checkpoints"
 
-
-def uses_rigid_flow(version: int) -> bool:
-    """Layout ``version`` takes the rigid prior flow of a constant-weight pre-solve."""
-    return version == 3
-
-
-def uses_map_depth(version: int) -> bool:
-    """Layout ``version`` takes the map's depth rendered at the reference's pose."""
-    return version == 4
-
-
-def uses_motion_memory(version: int) -> bool:
-    """Layout ``version`` takes the reference's motion memory (:mod:`vo.motion_memory`)."""
-    return version == 5
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -81,12 +49,6 @@ class WeightInputs:
         flow: ``(B, 2, H, W)`` temporal flow current -> reference (pixels).
         parallax_cur, parallax_ref: ``(B, 2, H, W)`` stereo parallax flows (pixels).
         valid: ``(B, 1, H, W)`` bool pixels that enter the objective.
-        rigid_flow: ``(B, 2, H, W)`` the flow a rigid motion fitted with constant weights predicts
-            (pixels; layout version 3 only, see :func:`rigid_prior_flow`).
-        model_depth_ref: ``(B, 1, H, W)`` the map's normalised depth rendered at the reference's
-            pose, 0 where the map does not cover it (layout version 4 only; all zero: no map yet).
-        motion_memory_ref: ``(B, 4, H, W)`` the reference's motion memory
-            (:func:`vo.motion_memory.update_memory`; layout version 5 only; None: no history).
     """
 
     image_cur: torch.Tensor
@@ -97,9 +59,6 @@ class WeightInputs:
     depth_ref: torch.Tensor
     parallax_ref: torch.Tensor
     valid: torch.Tensor
-    rigid_flow: torch.Tensor | None = None
-    model_depth_ref: torch.Tensor | None = None
-    motion_memory_ref: torch.Tensor | None = None
 
 
 def _scale_flow(flow: torch.Tensor, width: int) -> torch.Tensor:
@@ -146,50 +105,8 @@ def network_inputs(inp: WeightInputs, downscale: int, version: int = INPUT_VERSI
     both = inp.valid & (inp.depth_cur > 0) & (warped[:, 1:2] > 0.999)
     rel = torch.where(both, (inp.depth_cur - warped[:, 0:1]) / inp.depth_cur.clamp(min=1e-6), torch.zeros_like(inp.depth_cur))
     change = torch.asinh(_downsample(rel, (h, w)) / DEPTH_CHANGE_REL)
-    if version == 2:
-        x3 = torch.cat([coords, cur, flow_fine, ref_warped, change], 1)
-        return x3[:, :IN_CHANNELS[2][0]], x3
-    if version == 4:
-        if inp.model_depth_ref is None:
-            raise ValueError("weight-network inputs of version 4 need the map's depth (WeightInputs.model_depth_ref)")
-        off_map = sample_by_flow(_downsample(map_deviation(inp.depth_ref, inp.model_depth_ref), (h, w)), flow_low)
-        x3 = torch.cat([coords, cur, flow_fine, off_map, ref_warped, change], 1)
-        return x3[:, :IN_CHANNELS[4][0]], x3
-    if version == 5:
-        memory = sample_by_flow(_downsample(memory_features(inp.motion_memory_ref, inp.depth_ref), (h, w)), flow_low)
-        x3 = torch.cat([coords, cur, flow_fine, memory, ref_warped, change], 1)
-        return x3[:, :IN_CHANNELS[5][0]], x3
-    if inp.rigid_flow is None:
-        raise ValueError("weight-network inputs of version 3 need the rigid prior flow (WeightInputs.rigid_flow)")
-    nonrigid = torch.asinh(_downsample(inp.flow - inp.rigid_flow, (h, w)) / FLOW_FINE_PX)
-    x3 = torch.cat([coords, cur, flow_fine, nonrigid, ref_warped, change], 1)
-    return x3[:, :IN_CHANNELS[3][0]], x3
-
-
-def map_deviation(depth_ref: torch.Tensor, model_depth_ref: torch.Tensor) -> torch.Tensor:
-    """``(B, 2, H, W)``: how far the reference's depth stands off the map's, ``asinh((D_ref -
-    D_map) / D_ref / 0.003)`` (0 where either is missing), and where the map covers the reference
-    (1 / 0). Inputs ``(B, 1, H, W)`` in the same unit, 0 where invalid."""
-    covered = (depth_ref > 0) & (model_depth_ref > 0)
-    rel = torch.where(covered, (depth_ref - model_depth_ref) / depth_ref.clamp(min=1e-6), torch.zeros_like(depth_ref))
-    return torch.cat([torch.asinh(rel / DEPTH_CHANGE_REL), covered.to(depth_ref.dtype)], 1)
-
-
-def rigid_prior_flow(points_cur: torch.Tensor, flow: torch.Tensor, T: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """The flow the rigid motion ``T`` predicts for every current pixel.
-
-    Args:
-        points_cur: ``(B, 3, H, W)`` current points (any unit; depth 0 where invalid).
-        flow: ``(B, 2, H, W)`` the measured flow, returned where the depth is invalid (residual 0).
-        T: ``(B, 4, 4)`` current -> reference camera, translation in the unit of ``points_cur``.
-        K: ``(3, 3)`` intrinsics.
-    """
-    B, _, H, W = points_cur.shape
-    moved = torch.einsum("bij,bjhw->bihw", T[:, :3, :3].to(points_cur.dtype), points_cur) \
-        + T[:, :3, 3].to(points_cur.dtype).view(B, 3, 1, 1)
-    ok = (points_cur[:, 2:3] > 0) & (moved[:, 2:3] > 1e-6)
-    predicted = project(moved, K.to(points_cur.dtype)) - pixel_grid(H, W, points_cur.device, points_cur.dtype)
-    return torch.where(ok, predicted, flow)
+    x3 = torch.cat([coords, cur, flow_fine, ref_warped, change], 1)
+    return x3[:, :IN_CHANNELS[2][0]], x3
 
 
 class _Block(nn.Sequential):
@@ -352,3 +269,70 @@ def load_weight_networks(path: str | Path | None, residuals: str, device: str = 
     nets.load_state_dict(ckpt["state_dict"])
     nets.residuals = residuals
     return nets.to(device).eval(), meta
+
+
+@dataclass
+class TrackingNetworks:
+    """The weight networks tracking chooses from for one pair of views (the same object may fill
+    several roles).
+
+    Attributes:
+        filtered: for a frame whose depth is filtered along the flow (``depth.temporal_gain`` < 1;
+            without the filter, the one set of networks).
+        stereo: for a frame that keeps its own stereo depth (a moving camera's frame).
+        model: against a view rendered from the map (frame2model).
+        meta: the metadata of the ``filtered`` networks' checkpoint.
+    """
+
+    filtered: WeightNetworks
+    stereo: WeightNetworks
+    model: WeightNetworks
+    meta: dict
+
+    def select(self, model_reference: bool, filtered_depth: bool) -> WeightNetworks:
+        """The networks for a current view against a model view (``model_reference``) or a
+        camera frame, whose depth is filtered or not."""
+        if model_reference:
+            return self.model
+        return self.filtered if filtered_depth else self.stereo
+
+    def to(self, device) -> "TrackingNetworks":
+        for nets in {id(n): n for n in (self.filtered, self.stereo, self.model)}.values():
+            nets.to(device).eval()
+        return self
+
+
+def load_tracking_networks(checkpoint: str, checkpoint_model: str, residuals: str, temporal_gain: float,
+                           temporal_still_mm: float, device: str = "cpu") -> TrackingNetworks:
+    """The networks of ``weights.checkpoint`` / ``weights.checkpoint_model`` (empty: the packaged
+    ones) for the depth filter's settings.
+
+    With the filter on (``temporal_gain`` < 1) the packaged filtered networks weigh the filtered
+    frames and, when the filter runs only while the camera is still (``temporal_still_mm`` > 0),
+    the packaged stereo-depth networks weigh the moving camera's frames. A named checkpoint weighs
+    every camera frame. Against the map: ``checkpoint_model``, else the packaged model-view
+    networks when no checkpoint is named, else the camera-frame networks.
+    """
+    filtered = temporal_gain < 1.0
+    nets, meta = load_weight_networks(checkpoint, residuals, device, filtered_depth=filtered)
+    stereo = nets
+    if filtered and temporal_still_mm > 0 and not checkpoint:
+        stereo_path = default_checkpoint(residuals, filtered_depth=False)
+        if stereo_path != default_checkpoint(residuals, filtered_depth=True):
+            stereo = load_weight_networks(stereo_path, residuals, device)[0]
+    model_path = model_reference_checkpoint(checkpoint, checkpoint_model, residuals)
+    model = nets if model_path is None else load_weight_networks(model_path, residuals, device)[0]
+    warn_depth_filter_mismatch(meta, temporal_gain, checkpoint)
+    return TrackingNetworks(filtered=nets, stereo=stereo, model=model, meta=meta).to(device)
+
+
+def warn_depth_filter_mismatch(meta: dict, temporal_gain: float, checkpoint: str) -> None:
+    """Log a warning when the named weight networks were trained on depth filtered with another
+    ``depth.temporal_gain`` than tracking uses (their weights then suit another depth noise); for
+    the packaged networks of an ablation mode that has no filtered variant, a note."""
+    trained = (meta.get("train_config") or {}).get("depth", {}).get("temporal_gain", 1.0)
+    if abs(float(trained) - float(temporal_gain)) > 1e-9:
+        (log.warning if checkpoint else log.info)(
+            "the weight networks (%s) were trained with depth.temporal_gain=%g, tracking uses %g: "
+            "their 3D weights suit another depth noise (docs/training.md)",
+            checkpoint or "packaged", float(trained), float(temporal_gain))

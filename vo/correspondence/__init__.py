@@ -9,12 +9,12 @@ from vo.correspondence.dis import DisFlow
 def make_flow_estimators(config: CorrespondenceConfig, device: str = "cpu") -> tuple[FlowEstimator, FlowEstimator]:
     """The temporal and the stereo flow estimators of ``config`` (they may be the same object)."""
     if config.backend == "dis":
-        return (DisFlow(config.dis_preset, config.dis_variational_refinement, config.dis_match_exposure),
-                DisFlow(config.dis_stereo_preset, config.dis_variational_refinement, config.dis_match_exposure))
+        return (DisFlow(config.dis_preset, exposure=config.dis_match_exposure),
+                DisFlow(config.dis_stereo_preset, exposure=config.dis_match_exposure))
     if config.backend == "raft":
         from vo.correspondence.raft_backend import RaftFlow
 
-        raft = RaftFlow(config.raft_checkpoint or None, small=config.raft_small, iters=config.raft_iters, device=device)
+        raft = RaftFlow(config.raft_checkpoint or None, iters=config.raft_iters, device=device)
         return raft, raft
     raise ValueError(f"unknown correspondence.backend '{config.backend}' (dis, raft)")
 

@@ -1,8 +1,9 @@
 """RAFT as a correspondence backend: dense temporal flow and stereo parallax flow.
 
 :class:`RaftFlow` implements :class:`vo.correspondence.base.FlowEstimator` with our own RAFT
-(:mod:`vo.raft`) and a published checkpoint (``raft-things.pth``, or ``raft-small.pth`` with
-``small=True``). Pretrained weights are never downloaded: the checkpoint must be a local file.
+(:mod:`vo.raft`) and a published checkpoint (``raft-things.pth`` or ``raft-small.pth``; which of the
+two variants it holds is read off its tensors). Pretrained weights are never downloaded: the
+checkpoint must be a local file.
 """
 from __future__ import annotations
 
@@ -74,8 +75,18 @@ def _check_state_dict(model: torch.nn.Module, state: Mapping[str, torch.Tensor],
     raise CheckpointMismatchError("; ".join(parts))
 
 
-def load_raft(checkpoint: str | Path | None, small: bool = False, device: str | torch.device = "cpu") -> RAFT:
+def _is_small(state: Mapping[str, torch.Tensor]) -> bool:
+    """Whether a state dict holds RAFT-S: its names and shapes are RAFT-S's and not RAFT's."""
+    def matches(model_state) -> bool:
+        return set(model_state) == set(state) and all(tuple(v.shape) == tuple(state[k].shape)
+                                                      for k, v in model_state.items())
+    return not matches(RAFT(small=False).state_dict()) and matches(RAFT(small=True).state_dict())
+
+
+def load_raft(checkpoint: str | Path | None, small: bool | None = None, device: str | torch.device = "cpu") -> RAFT:
     """Build :class:`~vo.raft.RAFT` and load ``checkpoint`` strictly; returns the model in eval mode.
+
+    ``small``: build RAFT-S (True) or RAFT (False); None reads the variant off the checkpoint.
 
     Raises:
         MissingCheckpointError: ``checkpoint`` is None or empty.
@@ -87,8 +98,10 @@ def load_raft(checkpoint: str | Path | None, small: bool = False, device: str | 
     path = Path(checkpoint).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"raft checkpoint not found: {path}")
-    model = RAFT(small=small)
     state = _unwrap_state_dict(torch.load(path, map_location="cpu", weights_only=True), path)
+    if small is None:
+        small = _is_small(state)
+    model = RAFT(small=small)
     _check_state_dict(model, state, path, small)
     model.load_state_dict(state, strict=True)
     return model.to(device).eval()
@@ -119,10 +132,10 @@ class RaftFlow:
     """Dense flow with RAFT: ``flow(image1, image2)`` -> ``(B, 2, H, W)`` pixel displacements (x, y).
 
     Args:
-        checkpoint: path to ``raft-things.pth`` (or ``raft-small.pth`` with ``small=True``); a plain
-            state dict or one wrapped in ``{'state_dict': ...}`` / ``{'model': ...}``, with or without
-            DataParallel's ``module.`` prefix.
-        small: use RAFT-S.
+        checkpoint: path to ``raft-things.pth`` or ``raft-small.pth``; a plain state dict or one
+            wrapped in ``{'state_dict': ...}`` / ``{'model': ...}``, with or without DataParallel's
+            ``module.`` prefix.
+        small: use RAFT-S (True), RAFT (False), or whichever the checkpoint holds (None).
         iters: update iterations per estimate (12 as in the published evaluation on KITTI-sized images).
         device: torch device the model runs on; inputs are moved there, results are returned there.
 
@@ -131,14 +144,14 @@ class RaftFlow:
 
     name = "raft"
 
-    def __init__(self, checkpoint: str | Path | None, small: bool = False, iters: int = 12,
+    def __init__(self, checkpoint: str | Path | None, small: bool | None = None, iters: int = 12,
                  device: str | torch.device = "cpu"):
         if iters < 1:
             raise ValueError(f"iters must be >= 1, got {iters}")
-        self.small = small
         self.iters = int(iters)
         self.device = torch.device(device)
         self.model = load_raft(checkpoint, small=small, device=self.device)
+        self.small = self.model.small
 
     @torch.no_grad()
     def flow(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,340 @@
+"""The tracker: a sequence's state and its decisions, one frame at a time.
+
+``Tracker.track`` is called once per frame. It owns what lives across frames: the pose, the last
+good view, the keyframe of frame2frame, the last motion (the still-camera rule and the solver's
+start), the surfel map and what gets fused into it. It decides each frame's reference (the
+previous frame, a keyframe, or the model view rendered from the map), whether the frame's depth
+is filtered, and whether the model view's estimate is refined. The VO core (``vo.StereoOdometry``)
+does the per-pair work; the pipeline (``slam.pipeline``) reads frames, logs and writes results.
+
+Poses here are those of the rectified left camera (``T_wc``, mm).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+import torch
+
+from slam.config import SlamConfig
+from vo.camera import StereoCamera
+from vo.odometry import StereoOdometry, TrackResult, View, moved_less_than
+
+log = logging.getLogger("slam")
+
+
+@dataclass
+class FrameResult:
+    """What the tracker made of one frame.
+
+    Attributes:
+        pose: ``(4, 4)`` ``T_wc`` of the rectified left camera, mm (a failed frame keeps the
+            last good pose).
+        failed: the frame's pose could not be trusted (``reason`` says why).
+        reason: '' for a good frame.
+        reference: what the frame was tracked against: ``first`` (the first frame),
+            ``previous_frame``, ``keyframe`` (an earlier frame, ``tracking.keyframe_gap``),
+            ``model`` (the map's view) or ``groundtruth`` (``tracking.poses: groundtruth``).
+        track: the VO core's result (flow, weight maps, solver figures), None without a solve.
+        keyframe: the sequence position of the keyframe the frame was tracked against, else None.
+        health: per-frame figures of how well the frame was tracked (``valid_pixels``,
+            ``iterations``, ``cost``; ``model_coverage`` against the map).
+        covariance: ``(6, 6)`` pose covariance (mm and rad, translation first), where one is
+            estimated; None otherwise.
+        timings: ``(stage, ms)`` of the work done for the frame, in order (a stage may repeat).
+    """
+
+    pose: np.ndarray
+    failed: bool = False
+    reason: str = ""
+    reference: str = ""
+    track: Optional[TrackResult] = None
+    keyframe: Optional[int] = None
+    health: dict = field(default_factory=dict)
+    covariance: Optional[np.ndarray] = None
+    timings: list = field(default_factory=list)
+
+    def time(self, stage: str, since: float) -> None:
+        """Record ``stage`` as the time elapsed since ``since`` (``time.perf_counter()``)."""
+        self.timings.append((stage, (time.perf_counter() - since) * 1000.0))
+
+
+@dataclass
+class Keyframe:
+    """Frame2frame's reference while the camera is still: its sequence position, view and pose."""
+
+    position: int
+    view: View
+    pose: np.ndarray
+
+
+def model_coverage(model_valid: torch.Tensor, frame_valid: torch.Tensor) -> float:
+    """The fraction of a frame's valid pixels ``(H, W)`` bool that the model view ``(H, W)`` bool
+    rendered at its pose covers (the whole image's fraction when the frame has none).
+
+    Measured on what the camera saw, not on the whole image: pixels without stereo depth (the
+    border the right view does not see) or masked out (instruments, highlights) are left out.
+    """
+    n = int(frame_valid.sum())
+    if n == 0:
+        return float(model_valid.float().mean())
+    return int((model_valid & frame_valid).sum()) / n
+
+
+def normalised_fusion_weight(w3d: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """The per-pixel fusion weight of a frame from its learned 3D weight.
+
+    Where the tracker weighed the pixel (``w3d > 0``): ``w3d`` divided by its median over those
+    pixels, clamped to [0, 1]. The optimum does not fix the weights' scale, so a typical pixel
+    counts as one observation (the map's confidence keeps ElasticFusion's meaning and a surface
+    becomes stable after a few frames) and a pixel the network trusts k times less than typical
+    counts 1/k. Valid pixels the tracker could not weigh (no reference depth there: tissue coming
+    into view, outside the model view) count fully: leaving them out would keep new tissue out of
+    the map until the tracker next falls back to the previous frame.
+    Invalid pixels (no stereo depth, instruments, highlights) are 0.
+
+    Args:
+        w3d: ``(H, W)`` learned 3D weight, 0 where the tracker did not weigh the pixel;
+        valid: ``(H, W)`` bool valid pixels of the frame.
+    """
+    weighed = valid & (w3d > 0)
+    vals = w3d[weighed]
+    if vals.numel() == 0:
+        return valid.to(w3d.dtype)
+    ref = vals.float()[:: max(1, vals.numel() // 20000)].median().clamp(min=1e-12)   # (quantile: 8x slower)
+    return torch.where(weighed, (w3d / ref).clamp(0, 1), valid.to(w3d.dtype))
+
+
+def mean_brightness(view: View) -> float:
+    """Mean grey level (0-255) of ``view``'s valid pixels (of all pixels when under 1 % are valid:
+    a dark frame may have no stereo depth at all)."""
+    gray = torch.from_numpy(view.gray)
+    valid = view.valid[0, 0].cpu()
+    if valid.shape == gray.shape and int(valid.sum()) >= 0.01 * valid.numel():
+        gray = gray[valid]
+    return float(gray.float().mean()) if gray.numel() else 0.0
+
+
+def exposure_gain(brightness: float, level: float, lo: float = 0.25, hi: float = 8.0) -> float:
+    """The gain that brings a frame of mean ``brightness`` to the map's exposure ``level`` (both
+    0-255 grey), clamped to ``[lo, hi]``: exposure is a global factor on the image (the light's
+    intensity, the exposure time), so the fused colour is ``image x gain``."""
+    return float(min(max(level / max(brightness, 0.5), lo), hi))
+
+
+class FusionExposure:
+    """The colour each view is fused with: brought to the map's exposure, the mean brightness of
+    the first fused frame that is not black (:func:`exposure_gain`). The map's colour then stays
+    one exposure through exposure jumps (fused as captured, a few frames at a quarter of the
+    brightness left dark patches the flow against the render could not match: twice the ATE on
+    the synthetic scanning sequence of ``tests/test_exposure.py``), and the render is relit to the
+    current frame's shading anyway."""
+
+    def __init__(self):
+        self.level: Optional[float] = None
+
+    def colour(self, view: View) -> torch.Tensor:
+        """``view``'s ``(3, H, W)`` colour to fuse."""
+        colour = view.image[0]
+        brightness = mean_brightness(view)
+        if self.level is None and brightness >= 8.0:     # (not a black frame)
+            self.level = brightness
+        gain = exposure_gain(brightness, self.level) if self.level else 1.0
+        return (colour * gain).clamp_(0.0, 1.0) if gain != 1.0 else colour
+
+
+class Tracker:
+    """One sequence's tracking.
+
+    Args:
+        config: the resolved configuration.
+        camera: the rectified stereo camera.
+        initial_pose: ``(4, 4)`` ``T_wc`` of the first frame's rectified left camera, mm.
+    """
+
+    def __init__(self, config: SlamConfig, camera: StereoCamera, initial_pose: np.ndarray):
+        self.config = config
+        self.camera = camera
+        self.odometry = StereoOdometry(camera, config.vo(), device=config.device)
+        tc = config.tracking
+        self.frame2model = tc.mode == "frame2model"
+        self.known_poses = tc.poses == "groundtruth"
+        self.map = None
+        if self.frame2model or tc.export_map or self.known_poses:
+            from mapping import SurfelMap
+
+            self.map = SurfelMap(config.map, device=config.device)
+            self.map.warm_up()      # compiled kernels loaded now, not in the first frame's time
+        # the learned w3D weighs fusion where there is one (not with constant weights or 2D only)
+        self.learned_fusion_weight = (tc.fuse_weight == "w3d" and self.odometry.networks is not None
+                                      and config.weights.residuals != "2d")
+        self.keyframe_gap = tc.keyframe_gap if not self.frame2model else 1
+        self.exposure = FusionExposure()
+        self.pose = np.asarray(initial_pose, dtype=np.float64)
+        self.last_view: Optional[View] = None
+        self.keyframe: Optional[Keyframe] = None
+        self.velocity = np.eye(4)   # the last tracked relative motion: solver.init=constant_velocity's start
+        self.fallbacks = 0          # frame2model frames tracked against the previous frame
+
+    # ------------------------------------------------------------------ what may run ahead
+    def flows_against_previous_frame(self) -> bool:
+        """Whether each frame's temporal flow goes against the frame before it (frame2frame;
+        frame2model with ``flow_reference: last_frame``; known poses with a learned w3D), so that
+        it can be computed ahead (:meth:`vo.odometry.StereoOdometry.flow_ahead`)."""
+        if self.known_poses:
+            return self.learned_fusion_weight
+        return not self.frame2model or self.config.tracking.flow_reference == "last_frame"
+
+    # ------------------------------------------------------------------ one frame
+    def track(self, position: int, index: int, view: View, gt_pose: Optional[np.ndarray] = None) -> FrameResult:
+        """Track the frame at sequence ``position`` (dataset frame ``index``) given its ``view``;
+        with ``tracking.poses: groundtruth``, ``gt_pose`` (rectified ``T_wc``, mm) is its pose.
+
+        A frame that cannot be tracked keeps the last good pose and reference."""
+        if self.known_poses:
+            return self._map_at_known_pose(index, view, gt_pose)
+        if self.last_view is None:
+            result = FrameResult(self.pose, reference="first", health=self._health(None))
+            self._fuse(view, None, self.pose, index, result)
+            self._advance(position, view, self.pose, result)
+            return result
+        result = FrameResult(self.pose)
+        # the reference: the keyframe, the model view, or the previous frame
+        ref, ref_pose, result.reference = self._reference(result)
+        init = self.velocity if self.config.solver.init == "constant_velocity" else None
+        if result.reference == "keyframe":
+            result.keyframe = self.keyframe.position
+            if init is not None:        # the motion since the keyframe, continued by one frame's
+                init = np.linalg.inv(ref_pose) @ self.pose @ self.velocity
+        # the depth is filtered between real frames while the camera is still
+        filter_against = None
+        if (result.reference != "model" and self.odometry.filters_depth()
+                and moved_less_than(self.velocity, self.config.depth.temporal_still_mm)):
+            filter_against = self.last_view
+        track = self.odometry.track(view, ref, init, filter_against)
+        result.timings += list(track.timings_ms.items())
+        result.track = track
+        if track.failed:
+            result.failed, result.reason = True, track.reason
+            result.health.update(self._health(track))
+            self.keyframe = None    # the next frame goes against the last tracked one, and becomes the keyframe
+            return result
+        pose = ref_pose @ track.relative
+        if result.reference == "model":
+            pose, track = self._refine(view, pose, track, result)
+            result.track = track
+        result.pose = pose
+        result.health.update(self._health(track))
+        self.velocity = np.linalg.inv(self.pose) @ pose
+        self._fuse(view, track.w3d, pose, index, result)
+        self._advance(position, view, pose, result)
+        return result
+
+    def _advance(self, position: int, view: View, pose: np.ndarray, result: FrameResult) -> None:
+        """Make a tracked frame the last good one and, in frame2frame, the keyframe when the
+        keyframe is ``tracking.keyframe_gap`` frames old or the camera moves."""
+        if self.keyframe_gap > 1 and (self.keyframe is None or position - self.keyframe.position >= self.keyframe_gap
+                                      or result.reference == "first" or not self._still_for_keyframe()):
+            self.keyframe = Keyframe(position, view, pose)   # (a moving camera: the next frame goes against this one)
+        self.pose, self.last_view = pose, view
+
+    def _still_for_keyframe(self) -> bool:
+        """Whether the last tracked motion leaves the camera still enough to keep the keyframe
+        (``tracking.keyframe_still_mm``; always with 0)."""
+        return moved_less_than(self.velocity, self.config.tracking.keyframe_still_mm)
+
+    def _health(self, track: Optional[TrackResult]) -> dict:
+        if track is None:
+            return {}
+        return {"valid_pixels": track.valid_pixels, "iterations": track.iterations, "cost": track.cost}
+
+    def _reference(self, result: FrameResult) -> tuple[View, np.ndarray, str]:
+        """The reference view of the next frame, the pose it sits at and its kind: the keyframe
+        (frame2frame, an earlier frame), the model view rendered at the last pose (frame2model,
+        where the map covers enough of what the last frame saw), else the previous frame."""
+        if self.keyframe is not None and self.keyframe.view is not self.last_view:
+            return self.keyframe.view, self.keyframe.pose, "keyframe"
+        if not self.frame2model:
+            return self.last_view, self.pose, "previous_frame"
+        t0 = time.perf_counter()
+        # depth first: the colour's blending pass is only run when the view is used
+        mv = self._render(self.pose, colour=False)
+        coverage = model_coverage(mv.valid, self.last_view.valid[0, 0])
+        result.health["model_coverage"] = coverage
+        if coverage < self.config.tracking.min_model_coverage:
+            result.time("render", t0)
+            self.fallbacks += 1
+            log.info("the model view covers %.0f%% of what the last frame saw: tracking against the previous frame",
+                     100 * coverage)
+            return self.last_view, self.pose, "previous_frame"
+        rendered = self.config.tracking.flow_reference == "rendered"
+        if rendered:
+            mv.with_colour()
+        result.time("render", t0)
+        ref = self.odometry.view_from_render(mv.color if rendered else None, mv.depth, mv.valid,
+                                             background=self.last_view)
+        return ref, self.pose, "model"
+
+    def _refine(self, view: View, pose: np.ndarray, track: TrackResult,
+                result: FrameResult) -> tuple[np.ndarray, TrackResult]:
+        """``tracking.refine_passes`` x: track ``view`` against the model rendered at its
+        estimated ``pose`` and compose the correction. Returns the pose and the last
+        successful tracking result (its weight maps weigh the fusion)."""
+        for _ in range(self.config.tracking.refine_passes):
+            t0 = time.perf_counter()
+            # depth first, as in _reference: the colour's blending pass only for a view that is used
+            mv = self._render(pose, colour=False)
+            if model_coverage(mv.valid, view.valid[0, 0]) < self.config.tracking.min_model_coverage:
+                result.time("render", t0)
+                break
+            mv.with_colour()
+            result.time("render", t0)
+            # the current frame fills the few uncovered pixels (no residual there: it sits at the
+            # true pose, the render at the estimate) and gives the render its shading
+            ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=view,
+                                                 background_matchable=False)
+            refined = self.odometry.track(view, ref)
+            result.timings += list(refined.timings_ms.items())
+            if refined.failed:
+                break
+            pose, track = pose @ refined.relative, refined
+        return pose, track
+
+    def _render(self, pose: np.ndarray, colour: bool):
+        return self.map.render(self.odometry.K, torch.as_tensor(pose, dtype=torch.float32), self.camera.height,
+                               self.camera.width, colour=colour)
+
+    def _fuse(self, view: View, w3d: Optional[torch.Tensor], pose: np.ndarray, index: int,
+              result: FrameResult) -> None:
+        """Fuse ``view`` at ``pose``, weighted by its ``(1, 1, H, W)`` learned ``w3d`` if given."""
+        if self.map is None:
+            return
+        t0 = time.perf_counter()
+        valid = view.valid[0, 0]
+        weight = None
+        if w3d is not None and self.learned_fusion_weight:
+            weight = normalised_fusion_weight(w3d[0, 0], valid)
+        self.map.fuse(view.depth[0, 0], self.exposure.colour(view), self.odometry.K,
+                      torch.as_tensor(pose, dtype=torch.float32), frame_index=index, weight=weight, valid=valid)
+        result.time("fusion", t0)
+
+    def _map_at_known_pose(self, index: int, view: View, pose: np.ndarray) -> FrameResult:
+        """``tracking.poses: groundtruth``: fuse ``view`` at its known ``pose``. The learned w3D
+        is what keeps badly matched depth, moving tissue and instruments out of the map, so each
+        frame is still matched to the previous one for it (no pose is solved for)."""
+        result = FrameResult(pose, reference="groundtruth")
+        w3d = None
+        if self.last_view is not None and self.learned_fusion_weight:
+            t0 = time.perf_counter()
+            corr = self.odometry.correspondences(view, self.last_view)
+            view.flow_ahead = None
+            t1 = time.perf_counter()
+            problem = self.odometry.residual_problem(view, self.last_view, corr)
+            _, w3d = self.odometry.weight_maps(view, self.last_view, corr, problem)
+            result.timings += [("flow", (t1 - t0) * 1000.0), ("weights", (time.perf_counter() - t1) * 1000.0)]
+        self._fuse(view, w3d, pose, index, result)
+        self.pose, self.last_view = pose, view
+        return result
