@@ -195,6 +195,8 @@ def _coerce(value: Any, typ: Any, key: str, source: str) -> Any:
     if typ is str:
         if isinstance(value, (dict, list)):
             raise ConfigError(f"{source}: '{key}' must be a string, got {value!r}")
+        if isinstance(value, bool) and "yes" in CHOICES.get(key, ()):
+            value = "yes" if value else "no"    # YAML reads an unquoted yes / no as a boolean
         value = "" if value is None else str(value)
         if key in CHOICES and value not in CHOICES[key]:
             raise ConfigError(f"{source}: '{key}' must be one of {', '.join(CHOICES[key])}, got '{value}'")

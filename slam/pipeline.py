@@ -2,7 +2,7 @@
 
 The pipeline owns progress, evaluation and result files; the VO core and the map own none of them.
 Poses: the VO core tracks the *rectified* left camera; rows written are those of the original left
-camera, ``T_wc = T_wc_rect @ [[R1, 0], [0, 1]]`` (ARCHITECTURE.md, Conventions). The world frame is
+camera, ``T_wc = T_wc_rect @ [[R1, 0], [0, 1]]`` (docs/method.md, Conventions). The world frame is
 the ground truth's when it exists (first estimate = first ground-truth pose), else the first camera's.
 """
 from __future__ import annotations

@@ -148,7 +148,7 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     correspondence: CorrespondenceConfig = field(default_factory=CorrespondenceConfig)
     # each frame's own stereo depth unless told otherwise (``--set depth.temporal_gain=0.05`` trains
-    # the networks tracking uses on a still camera's filtered depth; README, "Temporal depth filter")
+    # the networks tracking uses on a still camera's filtered depth; docs/training.md)
     depth: DepthConfig = field(default_factory=lambda: DepthConfig(temporal_gain=1.0, temporal_still_mm=0.0))
     map: MapConfig = field(default_factory=MapConfig)    # the model references' map (data.reference: model)
     # the declarative layer's forward solve (its tolerance: vo.solver.DECLARATIVE)

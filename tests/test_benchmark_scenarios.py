@@ -150,7 +150,7 @@ def test_pooled_ratio_counts_every_pixel_once():
 
 
 def test_weight_stats_split_by_rest_shape_and_by_motion_between_frames():
-    """The logger's two splits on hand-made frames: displacement from the rest shape (issue 4's
+    """The logger's two splits on hand-made frames: displacement from the rest shape (the w3D check's
     check) and motion between the two frames along the flow; a failed frame breaks the chain."""
     import torch
     from types import SimpleNamespace as NS

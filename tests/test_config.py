@@ -50,3 +50,14 @@ def test_bad_override():
         load_config(None, ["weights.w4d=1"])
     with pytest.raises(ConfigError, match="expected key=value"):
         load_config(None, ["weights"])
+
+
+def test_unquoted_yes_and_no_are_the_choices_not_booleans(tmp_path):
+    """YAML reads an unquoted ``yes`` / ``no`` as a boolean: ``data.rectified`` takes them as its choices."""
+    from slam.config import load_config
+
+    assert load_config(None, ["data.rectified=yes"]).data.rectified == "yes"
+    assert load_config(None, ["data.rectified=no"]).data.rectified == "no"
+    path = tmp_path / "c.yaml"
+    path.write_text("data:\n  rectified: no\n")
+    assert load_config(path).data.rectified == "no"

@@ -86,7 +86,7 @@ def test_detector_ratio_of_an_ideal_motion_detector():
 
 
 def test_masking_moving_tissue_helps_the_3d_residual_only_on_exact_depth(synth_dir):
-    """The physics behind issue 4's w3D check (README, "Do the weight maps find moving tissue?"):
+    """The physics behind the w3D check (docs/experiments.md, "What hides moving tissue"):
     with the generator's depth, zeroing w3D where the tissue moved between the frames lowers the
     3D-only pose error per pair several times; with stereo depth, whose error changes between
     frames by more than the tissue moves, it does not lower it."""
@@ -105,7 +105,7 @@ def test_masking_moving_tissue_helps_the_3d_residual_only_on_exact_depth(synth_d
 
 
 def test_oracle_tool_scales_w3d_on_tissue_displaced_from_rest(synth_dir):
-    """The rows that meet issue 4's w3D check by construction: w3D times a factor where the tissue
+    """The rows that meet the w3D check by construction: w3D times a factor where the tissue
     is displaced from its rest shape by more than 0.5 mm, as it is, with the frame's total w3D
     kept (moved onto the other pixels), or with w2D scaled too. Factor 1 changes nothing; factor 0
     changes the poses."""

@@ -1,4 +1,4 @@
-"""Frame2model against frame2frame on synthetic rigid and loop sequences (issue 5's check).
+"""Frame2model against frame2frame on synthetic rigid and loop sequences.
 
     .venv/bin/python tools/benchmark_frame2model.py [--scenarios rigid loop] [--seeds 8001 8002 8003 8004]
         [--frames rigid=150 loop=300] [--size 320x256] [--workers 2] [--out runs/benchmark_f2m]

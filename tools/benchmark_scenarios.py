@@ -7,8 +7,8 @@ and macro averages, for constant and learned weights (ablation).
     .venv/bin/python tools/benchmark_scenarios.py --report runs/scenarios   # the tables of a finished run
 
 Evaluation seeds are disjoint from the training seeds (configs/train.yaml, 1000+): 9001-9003 were
-fixed before any tuning (and later decisions were read off them), 9101-9107 were added unseen in
-stop 21 because three sequences per scenario left the table within training noise; ten per
+fixed before any tuning (and later decisions were read off them), 9101-9107 were added unseen
+later because three sequences per scenario left the table within training noise; ten per
 scenario take about 20 minutes on two cores. Decisions (which checkpoint to ship) are taken on the
 validation seeds 1004, 1005 and 1012-1014 (`--seeds 1004 1005 1012 1013 1014`), which no training
 uses either. Methods:

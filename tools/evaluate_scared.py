@@ -12,7 +12,7 @@ What it reads
 ``SCARED_ROOT/dataset_<d>/keyframe_<k>/`` (also ``dataset<d>/keyframe<k>`` or flat
 ``SCARED_ROOT/d<d>_k<k>/``) for the test datasets ``--datasets`` (default 1 8 9: the paper's test
 split; d4 and d5 are excluded for bad calibrations, d2 d3 d6 d7 are training data). Each keyframe
-folder is in the SCARED keyframe layout ``slam.datasets`` reads (ARCHITECTURE.md, "Data layouts";
+folder is in the SCARED keyframe layout ``slam.datasets`` reads (docs/inputs.md;
 ``slam/datasets/scared.py``): ``endoscope_calibration.yaml``, ``data/rgb.mp4`` (left over right),
 ``data/frame_data/*.json`` or ``data/frame_data.tar.gz`` (``camera-pose``, converted to our ``T_wc``
 as documented in ``slam/datasets/scared.py``; the world frame is the keyframe's left camera).

@@ -9,7 +9,7 @@
 What it reads
 -------------
 ``STEREOMIS_ROOT`` holds one folder per sequence (``P2_0``, ``P2_1``, ``H2_0`` ...) in either
-StereoMIS layout ``slam.datasets.open_dataset`` reads (ARCHITECTURE.md, "Data layouts"):
+StereoMIS layout ``slam.datasets.open_dataset`` reads (docs/inputs.md):
 pre-processed (``video_frames/%06dl.png`` + ``%06dr.png``, ``StereoCalibration.ini``,
 ``groundtruth.txt``, optional ``masks/``) or raw (one ``*.mp4`` holding the left view over the
 right view, ``StereoCalibration.ini``, ``groundtruth.txt``). Ground truth is required.

@@ -142,7 +142,7 @@ def main() -> None:
     ap.add_argument("--thresholds", nargs="+", type=float, default=[0.01, 0.02, 0.05])
     ap.add_argument("--rest-scales", nargs="*", type=float, default=[],
                     help="also solve with w3D multiplied by each factor on pixels displaced from the rest shape by "
-                         "more than 0.5 mm (a w3D that meets issue 4's check by construction), as is, with the "
+                         "more than 0.5 mm (a w3D below half the rest's on displaced tissue by construction), as is, with the "
                          "frame's total w3D kept, and with w2D multiplied too")
     ap.add_argument("--set", action="append", default=[], help="config override, e.g. weights.mode=constant")
     ap.add_argument("--threads", type=int, default=1)

@@ -49,7 +49,7 @@ class PlainDataset(StereoDataset):
         if len(self._left) != len(self._right):
             raise DataError(f"{left_dir} has {len(self._left)} images but {right_dir} has {len(self._right)}")
         if not self._left:
-            raise DataError(f"{left_dir}: no images (*.png)")
+            raise DataError(f"{left_dir}: no images (*.png, *.jpg, *.jpeg)")
         camera = read_plain_yaml(path / CALIB_FILE)
         processor = ResizeOnly(camera, (config.width, config.height))
         n = len(self._left)
