@@ -1,12 +1,20 @@
 """Reading stereo calibration files.
 
-Three formats are read here, each into a plain data structure:
+Four formats are read here, each into a plain data structure (:func:`read_calibration` tells
+them apart):
 
 * ``StereoCalibration.ini`` (StereoMIS): :func:`read_stereomis_ini` -> :class:`RawStereoCalibration`
 * ``endoscope_calibration.yaml`` (SCARED, OpenCV FileStorage): :func:`read_scared_yaml`
   -> :class:`RawStereoCalibration`
 * ``calibration.yaml`` (plain folders of rectified images): :func:`read_plain_yaml`
   -> :class:`vo.camera.StereoCamera`
+* ``calibration.json`` (this project's own, see :func:`read_json_calibration`)
+  -> :class:`RawStereoCalibration`
+
+A calibration and the frames it is used with must agree: :func:`fit_to_frames` scales a
+calibration made at an integer multiple (or fraction) of the frames' size and refuses one that
+fits no such factor; :func:`is_rectified` tells rectified calibrations (no distortion, no rotation
+between the cameras) from raw ones.
 
 A raw calibration describes two distorted, unrectified pinhole cameras; turning it into the
 rectified :class:`~vo.camera.StereoCamera` the VO core works with is the job of
@@ -40,7 +48,8 @@ class RawStereoCalibration:
         R: ``(3, 3)`` rotation and ``T``: ``(3,)`` translation (mm) of the OpenCV stereo convention
             ``X_right = R @ X_left + T`` (points expressed in the left camera frame mapped to the
             right camera frame). For a right camera to the right of the left one ``T[0] < 0``.
-        image_size: ``(width, height)`` of each view, pixels.
+        image_size: ``(width, height)`` of each view, pixels, or None where the file names none
+            (:func:`fit_to_frames` then decides it from the principal point).
         source: the file the calibration was read from (for error messages), or None.
     """
 
@@ -50,7 +59,7 @@ class RawStereoCalibration:
     D2: np.ndarray
     R: np.ndarray
     T: np.ndarray
-    image_size: tuple[int, int]
+    image_size: Optional[tuple[int, int]]
     source: Optional[Path] = None
 
     def __post_init__(self) -> None:
@@ -60,7 +69,8 @@ class RawStereoCalibration:
         self.D2 = np.asarray(self.D2, dtype=np.float64).reshape(-1)
         self.R = np.asarray(self.R, dtype=np.float64).reshape(3, 3)
         self.T = np.asarray(self.T, dtype=np.float64).reshape(3)
-        self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
+        if self.image_size is not None:
+            self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
 
     @property
     def baseline_mm(self) -> float:
@@ -74,8 +84,8 @@ class RawStereoCalibration:
     def validate(self) -> "RawStereoCalibration":
         """Check the values are usable; raise DataError naming the file otherwise."""
         where = self.name()
-        w, h = self.image_size
-        if w <= 0 or h <= 0:
+        if self.image_size is not None and min(self.image_size) <= 0:
+            w, h = self.image_size
             raise DataError(f"{where}: invalid image size {w}x{h}")
         for label, K in (("left", self.K1), ("right", self.K2)):
             if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
@@ -170,8 +180,8 @@ def read_scared_yaml(path: str | Path, image_size: Optional[Sequence[int]] = Non
     Matrices ``M1 D1 M2 D2 R T`` (``T`` in mm, ``X_right = R X_left + T``). The image size is taken
     from the file when present (``width``/``height``, ``image_width``/``image_height``,
     ``Camera.width``/``Camera.height`` or a 2-vector ``image_size``/``imageSize``), else from
-    ``image_size`` = ``(width, height)`` given by the caller (SCARED files usually have none: the
-    reader passes the video's per-view frame size).
+    ``image_size`` = ``(width, height)`` given by the caller, else None (SCARED files usually have
+    none: :func:`fit_to_frames` decides it from the principal point).
     """
     import cv2
 
@@ -218,9 +228,7 @@ def read_scared_yaml(path: str | Path, image_size: Optional[Sequence[int]] = Non
         size = _filestorage_size(fs)
     finally:
         fs.release()
-    if size is None:
-        if image_size is None:
-            raise DataError(f"{path}: no image size in the calibration file and none given")
+    if size is None and image_size is not None:
         size = (int(image_size[0]), int(image_size[1]))
     return RawStereoCalibration(K1=K1, D1=D1, K2=K2, D2=D2, R=R, T=T, image_size=size, source=path).validate()
 
@@ -316,6 +324,180 @@ def read_plain_yaml(path: str | Path) -> StereoCamera:
             raise DataError(f"{path}: '{key}' must be an integer, got {values[key]:g}")
     K = np.array([[values["fx"], 0.0, values["cx"]], [0.0, values["fy"], values["cy"]], [0.0, 0.0, 1.0]])
     return StereoCamera(K=K, baseline_mm=values["baseline_mm"], width=int(values["width"]), height=int(values["height"]))
+
+
+# --------------------------------------------------------------------------------------------
+# This project's JSON calibration
+# --------------------------------------------------------------------------------------------
+
+def read_json_calibration(path: str | Path) -> RawStereoCalibration:
+    """Read a stereo calibration in this project's JSON format::
+
+        {
+          "left":  {"K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], "D": [k1, k2, p1, p2, k3]},
+          "right": {"K": [[...], [...], [...]],                  "D": [...]},
+          "R": [[...], [...], [...]],        # X_right = R X_left + T (OpenCV's stereo convention)
+          "T": [tx, ty, tz],                 # mm; a right camera to the right of the left: tx < 0
+          "image_size": [width, height]      # optional: the size the intrinsics refer to
+        }
+
+    ``D`` may be omitted or empty (no distortion: rectified views with ``R`` the identity).
+    """
+    import json
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: calibration file not found")
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, OSError, UnicodeError) as exc:
+        raise DataError(f"{path}: cannot parse JSON ({_one_line(exc)})") from None
+    if not isinstance(data, dict):
+        raise DataError(f"{path}: expected an object with 'left', 'right', 'R' and 'T'")
+
+    def array(value, key: str, size: int | None) -> np.ndarray:
+        try:
+            arr = np.asarray(value, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise DataError(f"{path}: '{key}' is not a list of numbers") from None
+        if size is not None and arr.size != size:
+            raise DataError(f"{path}: '{key}' has {arr.size} values, expected {size}")
+        if not np.all(np.isfinite(arr)):
+            raise DataError(f"{path}: '{key}' is not finite")
+        return arr
+
+    def camera(side: str) -> tuple[np.ndarray, np.ndarray]:
+        cam = data.get(side)
+        if not isinstance(cam, dict) or "K" not in cam:
+            raise DataError(f"{path}: missing '{side}' with its 'K'")
+        D = cam.get("D") or [0.0, 0.0, 0.0, 0.0, 0.0]
+        return array(cam["K"], f"{side}.K", 9).reshape(3, 3), array(D, f"{side}.D", None)
+
+    for key in ("R", "T"):
+        if key not in data:
+            raise DataError(f"{path}: missing '{key}'")
+    K1, D1 = camera("left")
+    K2, D2 = camera("right")
+    R = array(data["R"], "R", None)
+    if R.size == 3:
+        import cv2
+
+        R = cv2.Rodrigues(R.reshape(3, 1))[0]
+    elif R.size != 9:
+        raise DataError(f"{path}: 'R' has {R.size} values, expected 9 (or a rotation vector of 3)")
+    size = None
+    if data.get("image_size") is not None:
+        wh = array(data["image_size"], "image_size", 2)
+        size = (int(round(wh[0])), int(round(wh[1])))
+    return RawStereoCalibration(K1=K1, D1=D1, K2=K2, D2=D2, R=R.reshape(3, 3), T=array(data["T"], "T", 3),
+                                image_size=size, source=path).validate()
+
+
+# --------------------------------------------------------------------------------------------
+# Any calibration file, and whether it fits the frames
+# --------------------------------------------------------------------------------------------
+
+#: the calibration files a sequence folder may hold, in the order they are looked for
+CALIBRATION_NAMES = ("StereoCalibration.ini", "endoscope_calibration.yaml", "calibration.yaml", "calibration.json")
+
+
+def read_calibration(path: str | Path) -> RawStereoCalibration | StereoCamera:
+    """Any calibration file the project reads, told apart by its extension and content: a StereoMIS
+    ``.ini``, this project's ``.json``, or a ``.yaml``/``.yml``/``.xml`` holding either OpenCV's
+    ``M1 D1 M2 D2 R T`` (SCARED; a raw calibration) or ``fx fy cx cy baseline_mm`` (a plain,
+    rectified camera)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: calibration file not found")
+    suffix = path.suffix.lower()
+    if suffix == ".ini":
+        return read_stereomis_ini(path)
+    if suffix == ".json":
+        return read_json_calibration(path)
+    if suffix in (".yaml", ".yml", ".xml"):
+        text = path.read_text(encoding="utf-8", errors="replace")
+        if "M1" in text or suffix == ".xml":
+            return read_scared_yaml(path)
+        return read_plain_yaml(path)
+    raise DataError(f"{path}: unknown calibration format (expected .ini, .json, .yaml or .yml)")
+
+
+def is_rectified(calib: RawStereoCalibration, tol_px: float = 0.5, tol_rad: float = 1e-4) -> bool:
+    """Whether a raw calibration describes views that are rectified already: no distortion, no
+    rotation between the cameras, the same focal lengths and principal row, the right camera
+    displaced along x only (within ``tol_px`` pixels and ``tol_rad`` radians)."""
+    no_distortion = np.abs(calib.D1).max() < 1e-9 and np.abs(calib.D2).max() < 1e-9
+    angle = math.acos(max(-1.0, min(1.0, (float(np.trace(calib.R)) - 1.0) / 2.0)))
+    K1, K2 = calib.K1, calib.K2
+    same_camera = (abs(K1[0, 0] - K2[0, 0]) < tol_px and abs(K1[1, 1] - K2[1, 1]) < tol_px
+                   and abs(K1[1, 2] - K2[1, 2]) < tol_px and abs(K1[0, 1]) < 1e-9 and abs(K2[0, 1]) < 1e-9)
+    along_x = math.hypot(calib.T[1], calib.T[2]) < 1e-3 * max(abs(calib.T[0]), 1e-9)
+    return bool(no_distortion and angle < tol_rad and same_camera and along_x)
+
+
+def rectified_camera(calib: RawStereoCalibration) -> StereoCamera:
+    """The :class:`StereoCamera` of a calibration :func:`is_rectified` accepts (its image size known)."""
+    w, h = calib.image_size
+    return StereoCamera(K=calib.K1.copy(), baseline_mm=abs(float(calib.T[0])), width=w, height=h)
+
+
+def _scaled(calib: RawStereoCalibration, factor: float, size: tuple[int, int]) -> RawStereoCalibration:
+    S = np.diag([factor, factor, 1.0])
+    # pixel centres: x' + 0.5 = factor (x + 0.5)
+    shift = np.array([[0.0, 0.0, 0.5 * (factor - 1.0)], [0.0, 0.0, 0.5 * (factor - 1.0)], [0.0, 0.0, 0.0]])
+    K1, K2 = S @ calib.K1 + shift, S @ calib.K2 + shift
+    return RawStereoCalibration(K1=K1, D1=calib.D1, K2=K2, D2=calib.D2, R=calib.R, T=calib.T, image_size=size,
+                                source=calib.source)
+
+
+def fit_calibration(calib: RawStereoCalibration, frame_size: tuple[int, int]) -> RawStereoCalibration:
+    """:func:`fit_to_frames`, logging a scaled calibration."""
+    import logging
+
+    fitted, factor = fit_to_frames(calib, frame_size)
+    if factor != 1.0:
+        logging.getLogger("slam").info("%s: calibration made at %gx the frames' size: intrinsics scaled by %g",
+                                       calib.name(), 1.0 / factor, factor)
+    return fitted
+
+
+def fit_to_frames(calib: RawStereoCalibration, frame_size: tuple[int, int],
+                  max_factor: int = 4) -> tuple[RawStereoCalibration, float]:
+    """The calibration at the frames' ``(width, height)``, and the factor its intrinsics were
+    scaled by (1: it fits as it is).
+
+    With an image size in the file, it must be the frames' or an integer multiple or fraction of
+    it (the aspect ratio kept). Without one, the principal point decides: near ``(W/2, H/2)`` the
+    calibration is the frames'; near ``(k W/2, k H/2)`` it was made at ``k`` times their size
+    (a SCARED calibration of 1280x1024 views used with frames halved to 640x512), and likewise at
+    a ``1/k`` fraction. Raises DataError naming the file when no factor up to ``max_factor`` fits.
+    """
+    W, H = int(frame_size[0]), int(frame_size[1])
+    where = calib.name()
+    if calib.image_size is not None:
+        cw, ch = calib.image_size
+        if (cw, ch) == (W, H):
+            return calib, 1.0
+        for k in range(2, max_factor + 1):
+            if (cw, ch) == (k * W, k * H):
+                return _scaled(calib, 1.0 / k, (W, H)), 1.0 / k
+            if (k * cw, k * ch) == (W, H):
+                return _scaled(calib, float(k), (W, H)), float(k)
+        raise DataError(f"{where}: calibration for {cw}x{ch} images does not fit frames of {W}x{H} "
+                        f"(neither equal nor an integer multiple or fraction of them)")
+    cx, cy = 0.5 * (calib.K1[0, 2] + calib.K2[0, 2]), 0.5 * (calib.K1[1, 2] + calib.K2[1, 2])
+    candidates = [float(k) for k in range(1, max_factor + 1)] + [1.0 / k for k in range(2, max_factor + 1)]
+    for scale in candidates:        # scale = calibration size / frame size
+        # the principal point within a fifth of the half-size of the image centre, on both axes
+        if abs(cx - scale * W / 2) < 0.2 * scale * W / 2 and abs(cy - scale * H / 2) < 0.2 * scale * H / 2:
+            size = (int(round(scale * W)), int(round(scale * H)))
+            fitted = RawStereoCalibration(K1=calib.K1, D1=calib.D1, K2=calib.K2, D2=calib.D2, R=calib.R,
+                                          T=calib.T, image_size=size, source=calib.source)
+            if scale == 1.0:
+                return fitted, 1.0
+            return _scaled(fitted, 1.0 / scale, (W, H)), 1.0 / scale
+    raise DataError(f"{where}: its principal point ({cx:.0f}, {cy:.0f}) fits no calibration size for frames "
+                    f"of {W}x{H} (expected near ({W / 2:.0f}, {H / 2:.0f}) or an integer multiple of it)")
 
 
 def _one_line(exc: BaseException) -> str:

@@ -7,6 +7,7 @@
     slam eval GT.txt EST.txt
     slam synth OUT --scenario S [--frames N] [--size WxH] [--seed S] [--raw]
     slam train --config configs/train.yaml [--out DIR]
+    slam inspect DATA [--calibration FILE] [--out DIR]
 """
 from __future__ import annotations
 
@@ -19,7 +20,11 @@ from slam.errors import SlamError
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("data", help="sequence folder (StereoMIS, StereoMIS raw, SCARED keyframe or plain layout)")
+    p.add_argument("data", help="sequence folder (docs/inputs.md: StereoMIS, SCARED, frame folders, ...) or a stereo video file")
+    p.add_argument("--calibration", metavar="FILE", help="calibration file to use (.ini, .yaml, .json; docs/inputs.md)")
+    p.add_argument("--stereo-layout", choices=["top-bottom", "side-by-side"],
+                   help="how a stereo video holds its views (default: from the calibration, then the aspect ratio)")
+    p.add_argument("--fps", type=float, help="the frames' rate when they carry no timestamps (data.fps)")
     p.add_argument("--config", help="YAML config (defaults: configs/default.yaml values built in)")
     p.add_argument("--out", help="output folder (default runs/<sequence>_<mode>)")
     p.add_argument("--frames", help="frame selection: N (first N) or A:B:S")
@@ -67,12 +72,26 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--size", default="640x512", help="WxH (default 640x512)")
     sy.add_argument("--seed", type=int, default=0)
     sy.add_argument("--raw", action="store_true", help="unrectified pair with lens distortion as one mp4 (StereoMIS raw layout)")
+    sy.add_argument("--codec", choices=["mp4v", "ffv1"], default="mp4v",
+                    help="the raw video's codec: mp4v (lossy .mp4, default) or ffv1 (lossless .avi)")
     sy.add_argument("--breathing-follows-tissue", type=float, default=0.0, metavar="C",
                     help="correlation 0-1 of the breathing amplitude with the tissue's look (red parenchyma "
                          "breathes most); default 0: amplitude independent of the image")
     sy.add_argument("--camera-speed", type=float, default=1.0, metavar="S",
                     help="scale of the rigid and scanning cameras' motion per frame (default 1: 0.3-0.9 mm; "
                          "0.1: a camera creeping below tracking's still threshold)")
+
+    ins = sub.add_parser("inspect", help="what the readers find in a sequence, and a rectified pair to check",
+                         description="Print what the readers found (layout, frames, sizes, calibration, rectification, "
+                                     "fps, ground truth, masks), check the stereo matches' vertical disparity and "
+                                     "write the rectified first pair with horizontal lines.")
+    ins.add_argument("data", help="sequence folder or stereo video file")
+    ins.add_argument("--calibration", metavar="FILE", help="calibration file to use")
+    ins.add_argument("--stereo-layout", choices=["top-bottom", "side-by-side"])
+    ins.add_argument("--fps", type=float)
+    ins.add_argument("--config", help="YAML config")
+    ins.add_argument("--out", help="folder for rectified_pair.png (default runs/inspect_<name>)")
+    ins.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
 
     tr = sub.add_parser("train", help="train the weight networks end to end through the pose optimum (DDN)",
                         description="Train the weight networks on sequences with ground truth (configs/train.yaml).")
@@ -86,21 +105,27 @@ def _resolved_config(args) -> "SlamConfig":  # noqa: F821
     from slam.config import load_config
 
     overrides = list(args.set)
+    if getattr(args, "calibration", None):
+        overrides.append(f"data.calibration={Path(args.calibration).expanduser().resolve()}")
+    if getattr(args, "stereo_layout", None):
+        overrides.append(f"data.stereo_layout={args.stereo_layout}")
+    if getattr(args, "fps", None) is not None:
+        overrides.append(f"data.fps={args.fps}")
     if getattr(args, "mode", None):
         overrides.append(f"tracking.mode={args.mode}")
-    if args.weights:
+    if getattr(args, "weights", None):
         overrides.append(f"weights.mode={args.weights}")
-    if args.residuals:
+    if getattr(args, "residuals", None):
         overrides.append(f"weights.residuals={args.residuals}")
-    if args.rerun:
+    if getattr(args, "rerun", None):
         overrides.append(f"logging.rerun={args.rerun}")
-    if args.spawn:
+    if getattr(args, "spawn", None):
         overrides.append("logging.spawn=true")
-    if args.export_map:
+    if getattr(args, "export_map", None):
         overrides.append("tracking.export_map=true")
-    if args.mesh:
+    if getattr(args, "mesh", None):
         overrides.append("logging.mesh=true")
-    if args.quiet:
+    if getattr(args, "quiet", None):
         overrides.append("logging.progress=false")
     return load_config(args.config, overrides)
 
@@ -141,9 +166,16 @@ def cmd_synth(args) -> int:
     from slam.synth import generate
 
     out = generate(args.out, args.scenario, frames=args.frames, size=parse_size(args.size), seed=args.seed,
-                   raw=args.raw, progress=True, breathing_follows_tissue=args.breathing_follows_tissue,
+                   raw=args.raw, progress=True, codec=args.codec, breathing_follows_tissue=args.breathing_follows_tissue,
                    camera_speed=args.camera_speed)
     print(f"wrote {args.frames} frames ({args.scenario}, seed {args.seed}) to {out}")
+    return 0
+
+
+def cmd_inspect(args) -> int:
+    from slam.inspect import inspect
+
+    inspect(args.data, _resolved_config(args), Path(args.out) if args.out else None)
     return 0
 
 
@@ -158,7 +190,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    handlers = {"run": cmd_run, "compare": cmd_compare, "eval": cmd_eval, "synth": cmd_synth, "train": cmd_train}
+    handlers = {"run": cmd_run, "compare": cmd_compare, "eval": cmd_eval, "synth": cmd_synth, "train": cmd_train,
+                "inspect": cmd_inspect}
     try:
         return handlers[args.command](args)
     except SlamError as err:

@@ -5,6 +5,7 @@ An unknown or mistyped key is a one-line ``ConfigError`` naming it (with a sugge
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
 import types
@@ -146,7 +147,8 @@ class SlamConfig:
 
 # Allowed values of string options, checked at load time.
 CHOICES = {
-    "data.layout": ("auto", "stereomis", "stereomis_raw", "scared", "plain"),
+    "data.layout": ("auto", "stereomis", "stereomis_raw", "scared", "plain", "frames", "video"),
+    "data.stereo_layout": ("auto", "top-bottom", "side-by-side"),
     "data.rectified": ("auto", "yes", "no"),
     "data.rectify_mode": ("full", "pseudo"),
     "correspondence.backend": ("dis", "raft"),
@@ -290,6 +292,34 @@ def validate(config: SlamConfig) -> None:
         config.map.validate()
     except ValueError as err:
         raise ConfigError(f"config: {err}") from None
+
+
+#: the frame rate the per-frame motion thresholds of the configuration are given at
+REFERENCE_FPS = 25.0
+
+
+def at_frame_rate(config: SlamConfig, fps: float) -> SlamConfig:
+    """``config`` with its per-frame thresholds scaled from ``REFERENCE_FPS`` to a sequence at
+    ``fps``, so that 5 and 25 fps mean the same motion per second: the still-camera thresholds
+    (``tracking.keyframe_still_mm``, ``depth.temporal_still_mm``) and the plausible motion
+    (``solver.max_translation_mm``) by ``REFERENCE_FPS / fps``; the depth filter's gate
+    (``depth.temporal_gate_mm``) likewise but never below its value (it also spans the stereo
+    noise, which the rate does not change); windows counted in frames (``tracking.keyframe_gap``,
+    ``map.unstable_window``) by ``fps / REFERENCE_FPS``, at least 1. At ``REFERENCE_FPS`` the
+    config itself."""
+    if fps <= 0:
+        raise ConfigError(f"frame rate must be positive, got {fps}")
+    if fps == REFERENCE_FPS:
+        return config
+    k = REFERENCE_FPS / fps
+    out = copy.deepcopy(config)
+    out.tracking.keyframe_still_mm *= k
+    out.depth.temporal_still_mm *= k
+    out.solver.max_translation_mm *= k
+    out.depth.temporal_gate_mm *= max(1.0, k)
+    out.tracking.keyframe_gap = max(1, int(round(config.tracking.keyframe_gap / k)))
+    out.map.unstable_window = max(1, int(round(config.map.unstable_window / k)))
+    return out
 
 
 def to_dict(config: Any) -> dict:

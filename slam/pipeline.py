@@ -19,7 +19,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from slam.config import SlamConfig, save_config
+from slam.config import SlamConfig, at_frame_rate, save_config
 from slam.datasets.base import StereoFrame
 from slam.errors import DataError, SlamError
 from slam.frame_view import frame_view
@@ -82,7 +82,9 @@ class Pipeline:
         self.R1 = _R1_4x4(dataset.R1)
         if config.tracking.poses == "groundtruth" and dataset.gt_poses is None:
             raise SlamError(f"{dataset.path}: tracking.poses=groundtruth needs a ground-truth trajectory")
-        self.tracker = Tracker(config, self.camera, self._initial_rect_pose())
+        # thresholds on the motion per frame, at the frames' own rate (a frame selection's too)
+        self.frame_rate = dataset.fps
+        self.tracker = Tracker(at_frame_rate(config, self.frame_rate), self.camera, self._initial_rect_pose())
         self.timings: dict[str, list[float]] = {}
         self._ahead_view: Optional[View] = None   # the read-ahead thread's last view (tracking.read_ahead)
         self._waiting_for = -1      # the frame the main thread waits for (-1: none)
@@ -100,7 +102,9 @@ class Pipeline:
     # --------------------------------------------------------------------------------------
     def _initial_rect_pose(self) -> np.ndarray:
         gt = self.dataset.gt_poses
-        T0 = gt[0] if gt is not None else np.eye(4)
+        T0 = gt[0] if gt is not None and np.all(np.isfinite(gt[0])) else np.eye(4)
+        if gt is not None and not np.all(np.isfinite(gt[0])):
+            log.warning("%s: the first frame has no ground-truth pose: the world frame is its camera's", self.dataset.path)
         return T0 @ self.R1.T  # T_wc_rect = T_wc_orig @ R1^T
 
     def _time(self, stage: str, ms: float) -> None:
@@ -241,6 +245,7 @@ class Pipeline:
             "fps": done / wall_s if wall_s > 0 else 0.0,
             "timings_ms": {k: float(np.mean(v)) for k, v in self.timings.items()},
             "mode": self.config.tracking.mode,
+            "frame_rate": self.frame_rate,
             "model_fallbacks": self.tracker.fallbacks,
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         }
@@ -249,7 +254,13 @@ class Pipeline:
             metrics["stopped_before_frame"] = int(self.dataset.indices[done]) if done < len(self.dataset) else None
         gt = self.dataset.gt_poses
         gt_sel = gt[:done] if gt is not None else None
-        if gt_sel is not None and done >= 2:
+        stamps = np.array([r.timestamp for r in records])
+        if gt_sel is not None:      # frames without a ground-truth pose (associated by time) are left out
+            known = np.all(np.isfinite(gt_sel.reshape(len(gt_sel), -1)), axis=1)
+            if not known.all():
+                metrics["frames_without_groundtruth"] = int((~known).sum())
+                gt_sel, est, stamps = gt_sel[known], est[known], stamps[known]
+        if gt_sel is not None and len(gt_sel) >= 2:
             metrics.update(evaluate(gt_sel, est))
         files = {"trajectory": str(self.out_dir / "trajectory.txt"), "config": str(self.out_dir / "config.yaml")}
         if self.map is not None:
@@ -263,8 +274,8 @@ class Pipeline:
                 mesh = self.out_dir / "mesh.ply"
                 metrics["mesh_triangles"] = self.map.save_mesh(mesh)
                 files["mesh"] = str(mesh)
-        if done >= 2:
-            plot_trajectory(self.out_dir / "trajectory.png", est, gt_sel, np.array([r.timestamp for r in records]),
+        if len(est) >= 2:
+            plot_trajectory(self.out_dir / "trajectory.png", est, gt_sel, stamps,
                             title=f"{self.dataset.path.name} ({self.config.tracking.mode})")
             files["plot"] = str(self.out_dir / "trajectory.png")
         (self.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))

@@ -8,7 +8,8 @@ from slam.pipeline import Pipeline, RunResult
 
 
 def default_out_dir(data: str | Path, mode: str) -> Path:
-    return Path("runs") / f"{Path(data).resolve().name}_{mode}"
+    path = Path(data).resolve()
+    return Path("runs") / f"{path.stem if path.is_file() else path.name}_{mode}"
 
 
 def make_logger(config: SlamConfig, dataset):

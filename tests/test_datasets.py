@@ -387,15 +387,26 @@ def test_video_cannot_be_opened(tmp_path):
 
 
 def test_groundtruth_shorter_than_frames(tmp_path):
+    """Another pose count than frames: the poses are associated by timestamp (the frames at
+    data.fps from the first pose), never by index; frames without a pose within half a frame
+    period get none; timestamps that meet no frame are a one-line error."""
     root = make_stereomis(tmp_path / "seq", n=6, gt=False)
-    write_tum(root / "groundtruth.txt", np.arange(4) * 0.1, random_poses(4))
-    with pytest.raises(DataError) as err:
+    poses = random_poses(8)
+    write_tum(root / "groundtruth.txt", 5.0 + np.arange(4) * 0.04, poses[:4])
+    with pytest.warns(UserWarning, match="2 of 6 frames have no ground-truth pose"):
+        ds = open_dataset(root, native())
+    np.testing.assert_allclose(ds.gt_poses[:4], poses[:4], atol=1e-6)
+    assert np.isnan(ds.gt_poses[4:]).all()
+    write_tum(root / "groundtruth.txt", 5.0 + np.arange(8) * 0.04, poses)
+    ds = open_dataset(root, native())  # longer: the frames' times pick theirs
+    np.testing.assert_allclose(ds.gt_poses, poses[:6], atol=1e-6)
+    write_tum(root / "groundtruth.txt", 5.0 + np.arange(8) * 0.02, poses)      # at 50 fps: every second one
+    with pytest.warns(UserWarning, match="have no ground-truth pose"):
+        ds = open_dataset(root, native())
+    np.testing.assert_allclose(ds.gt_poses[:4], poses[0:8:2], atol=1e-6)
+    write_tum(root / "groundtruth.txt", np.arange(4) * 4e7, poses[:4])        # nanoseconds: only the first frame meets one
+    with pytest.warns(UserWarning, match="5 of 6 frames have no ground-truth pose"):
         open_dataset(root, native())
-    assert str(root / "groundtruth.txt") in one_line(err) and "4 poses for 6 frames" in str(err.value)
-    write_tum(root / "groundtruth.txt", np.arange(8) * 0.1, random_poses(8))
-    with pytest.warns(UserWarning, match="8 poses for 6 frames"):
-        ds = open_dataset(root, native())  # longer: the extra rows are dropped
-    assert ds.gt_poses.shape == (6, 4, 4)
 
 
 def test_bad_config(tmp_path):

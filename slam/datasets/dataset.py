@@ -34,6 +34,9 @@ from slam.datasets.selection import parse_frames
 from slam.errors import DataError
 from slam.tum import read_tum
 
+#: the frame rate assumed where neither the data nor ``data.fps`` gives one
+DEFAULT_FPS = 25.0
+
 
 @dataclass
 class RawFrame:
@@ -83,7 +86,7 @@ class StereoDataset:
         self.R1 = np.asarray(processor.R1, dtype=np.float64)
         self.num_frames_total = int(n_frames)
         if timestamps is None:
-            fps = config.fps if config.fps and config.fps > 0 else 25.0
+            fps = config.fps if config.fps and config.fps > 0 else DEFAULT_FPS
             timestamps = np.arange(self.num_frames_total, dtype=np.float64) / fps
         self._timestamps = np.asarray(timestamps, dtype=np.float64)
         self._gt_poses = None if gt_poses is None else np.asarray(gt_poses, dtype=np.float64)
@@ -108,6 +111,18 @@ class StereoDataset:
 
     def __len__(self) -> int:
         return len(self.indices)
+
+    @property
+    def fps(self) -> float:
+        """The frame rate of this view (frames per second): from its timestamps' median step
+        (rounded to 1e-3), where they imply 1-1000 fps, else ``data.fps`` or ``DEFAULT_FPS``. A
+        view of every S-th frame runs at a S-th of the sequence's rate."""
+        stamps = self.timestamps
+        if len(stamps) > 1:
+            step = float(np.median(np.diff(stamps)))
+            if step > 0 and 1.0 <= 1.0 / step <= 1000.0:
+                return round(1.0 / step, 3)
+        return self.config.fps if self.config.fps > 0 else DEFAULT_FPS
 
     def __iter__(self) -> Iterator[StereoFrame]:
         for i in range(len(self)):
@@ -244,9 +259,46 @@ def match_groundtruth(source: str, stamps: Optional[np.ndarray], poses: np.ndarr
     return stamps, poses
 
 
-def load_tum_groundtruth(path: Path, n_frames: int) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
-    """``groundtruth.txt`` (TUM, metres) -> timestamps and ``T_wc`` in mm, or (None, None) if absent."""
+def load_groundtruth(path: Path, n_frames: int, frame_stamps: Optional[np.ndarray] = None, fps: float = 0.0
+                     ) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
+    """The frames' timestamps and their ground-truth poses ``(N, 4, 4)`` ``T_wc`` in mm from a TUM
+    file (metres), or ``(frame_stamps, None)`` where there is none.
+
+    With one pose per frame the poses are the frames' in order, and frames without timestamps of
+    their own (``frame_stamps`` None) take the ground truth's. Otherwise poses are associated by
+    timestamp, never by index: each frame
+    gets the pose nearest in time within half a frame period (frames without one get NaN rows,
+    which evaluation leaves out); frames without timestamps are taken at ``fps`` (``DEFAULT_FPS``
+    when 0) from the first pose's time. DataError naming the file when no frame gets a pose.
+    """
     if not path.exists():
-        return None, None
-    stamps, poses = read_tum(path, scale_to_mm=True)
-    return match_groundtruth(str(path), stamps, poses, n_frames)
+        return frame_stamps, None
+    gt_stamps, poses = read_tum(path, scale_to_mm=True)
+    if len(poses) == n_frames:      # one pose per frame, in order
+        return (gt_stamps if frame_stamps is None else frame_stamps), poses
+    if frame_stamps is None:
+        rate = fps if fps and fps > 0 else DEFAULT_FPS
+        frame_stamps = gt_stamps[0] + np.arange(n_frames, dtype=np.float64) / rate
+    return frame_stamps, associate_poses(str(path), gt_stamps, poses, np.asarray(frame_stamps, dtype=np.float64))
+
+
+def associate_poses(source: str, gt_stamps: np.ndarray, poses: np.ndarray, frame_stamps: np.ndarray) -> np.ndarray:
+    """``(N, 4, 4)`` poses at ``frame_stamps``: the nearest of ``gt_stamps`` within half a frame
+    period (the median step of ``frame_stamps``, or of ``gt_stamps`` for one frame), NaN where none."""
+    steps = np.diff(frame_stamps) if len(frame_stamps) > 1 else np.diff(gt_stamps)
+    half = 0.5 * float(np.median(steps)) if len(steps) else np.inf
+    order = np.argsort(gt_stamps, kind="stable")
+    sorted_stamps = gt_stamps[order]
+    idx = np.searchsorted(sorted_stamps, frame_stamps)
+    lo, hi = np.clip(idx - 1, 0, len(sorted_stamps) - 1), np.clip(idx, 0, len(sorted_stamps) - 1)
+    nearest = np.where(np.abs(frame_stamps - sorted_stamps[lo]) <= np.abs(sorted_stamps[hi] - frame_stamps), lo, hi)
+    found = np.abs(sorted_stamps[nearest] - frame_stamps) <= half * (1 + 1e-9)
+    out = np.full((len(frame_stamps), 4, 4), np.nan)
+    out[found] = poses[order[nearest[found]]]
+    if not found.any():
+        raise DataError(f"{source}: no ground-truth pose within half a frame period of any frame (timestamps in "
+                        f"another unit or clock? give the frames' timestamps.txt or --fps)")
+    if not found.all():
+        warnings.warn(f"{source}: {int((~found).sum())} of {len(found)} frames have no ground-truth pose within "
+                      "half a frame period (left out of the evaluation)", stacklevel=3)
+    return out

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from slam.calibration import read_plain_yaml
 from slam.datasets.config import DataConfig
-from slam.datasets.dataset import RawFrame, StereoDataset, load_tum_groundtruth, read_mask, read_rgb
+from slam.datasets.dataset import RawFrame, StereoDataset, load_groundtruth, read_mask, read_rgb
 from slam.errors import ConfigError, DataError
 from slam.rectification import ResizeOnly
 
@@ -34,7 +34,11 @@ class PlainDataset(StereoDataset):
 
     @staticmethod
     def detect(path: Path) -> bool:
-        return (path / "left").is_dir() and (path / "right").is_dir()
+        # left/ and right/ with the plain calibration, or with no other calibration to use
+        from slam.calibration import CALIBRATION_NAMES
+
+        others = [name for name in CALIBRATION_NAMES if name != CALIB_FILE and (path / name).is_file()]
+        return (path / "left").is_dir() and (path / "right").is_dir() and ((path / CALIB_FILE).is_file() or not others)
 
     def __init__(self, path: Path, config: DataConfig):
         path = Path(path)
@@ -53,7 +57,7 @@ class PlainDataset(StereoDataset):
         camera = read_plain_yaml(path / CALIB_FILE)
         processor = ResizeOnly(camera, (config.width, config.height))
         n = len(self._left)
-        stamps, poses = load_tum_groundtruth(path / GT_FILE, n)
+        stamps, poses = load_groundtruth(path / GT_FILE, n, None, config.fps)
         super().__init__(path, config, processor, n, stamps, poses)
         self._masks_dir = path / "masks"
 

@@ -2,10 +2,12 @@
 
 Detection (first match wins; ``config.layout`` other than ``auto`` skips it):
 
-1. ``video_frames/``                                 -> ``stereomis`` (pre-processed StereoMIS / synthetic)
-2. ``endoscope_calibration.yaml`` or ``data/rgb.mp4`` -> ``scared``
-3. ``left/`` and ``right/``                          -> ``plain``
-4. a ``*.mp4`` in the folder                         -> ``stereomis_raw``
+1. ``video_frames/``                                   -> ``stereomis`` (pre-processed StereoMIS / synthetic)
+2. ``data/rgb.mp4`` (or the calibration beside ``data/``) -> ``scared``
+3. ``left/`` and ``right/`` with ``calibration.yaml``  -> ``plain``
+4. left and right image folders by name (docs/inputs.md) -> ``frames``
+5. a ``*.mp4`` with ``StereoCalibration.ini``          -> ``stereomis_raw``
+6. one video file (or a video file given as DATA)      -> ``video``
 
 A detected layout with missing pieces (e.g. no calibration) fails in its reader with a DataError
 naming the missing file.
@@ -17,10 +19,13 @@ from typing import Optional
 
 from slam.datasets.config import DataConfig
 from slam.datasets.dataset import StereoDataset
+from slam.datasets.frames import FrameFolderDataset
 from slam.datasets.plain import PlainDataset
 from slam.datasets.scared import ScaredDataset
 from slam.datasets.stereomis import StereoMISDataset
 from slam.datasets.stereomis_raw import StereoMISRawDataset
+from slam.datasets.video import VIDEO_SUFFIXES
+from slam.datasets.video_file import VideoFileDataset
 from slam.errors import ConfigError, DataError
 
 #: layout name -> reader class, in detection order.
@@ -28,11 +33,15 @@ READERS: dict[str, type[StereoDataset]] = {
     "stereomis": StereoMISDataset,
     "scared": ScaredDataset,
     "plain": PlainDataset,
+    "frames": FrameFolderDataset,
     "stereomis_raw": StereoMISRawDataset,
+    "video": VideoFileDataset,
 }
 
 LOOKED_FOR = ("video_frames/ (StereoMIS)", "endoscope_calibration.yaml + data/rgb.mp4 (SCARED)",
-              "left/ + right/ + calibration.yaml (plain)", "*.mp4 + StereoCalibration.ini (StereoMIS raw)")
+              "left/ + right/ + calibration.yaml (plain)",
+              "left and right image folders + a calibration file (left*/right*, image01/image02, image_0/image_1, l/r)",
+              "*.mp4 + StereoCalibration.ini (StereoMIS raw)", "a stereo video file + a calibration file")
 
 
 def validate_config(config: DataConfig) -> None:
@@ -53,17 +62,22 @@ def validate_config(config: DataConfig) -> None:
         raise ConfigError(f"data.dark_threshold: expected a value in [0, 1) (0 disables), got {config.dark_threshold}")
     if int(config.specular_dilate_px) < 0:
         raise ConfigError(f"data.specular_dilate_px: expected >= 0, got {config.specular_dilate_px}")
-    if not float(config.fps) > 0:
-        raise ConfigError(f"data.fps: expected a positive frame rate, got {config.fps}")
+    if not float(config.fps) >= 0:
+        raise ConfigError(f"data.fps: expected a frame rate >= 0 (0 = from the data), got {config.fps}")
+    if config.stereo_layout not in ("auto", "top-bottom", "side-by-side"):
+        raise ConfigError(f"data.stereo_layout: expected auto, top-bottom or side-by-side, got '{config.stereo_layout}'")
 
 
 def detect_layout(path: str | Path) -> str:
     """The layout name of a sequence folder; DataError naming the folder if none matches."""
     path = Path(path)
     if not path.exists():
-        raise DataError(f"{path}: no such folder")
-    if not path.is_dir():
-        raise DataError(f"{path}: not a folder (give the sequence folder)")
+        raise DataError(f"{path}: no such file" if path.suffix.lower() in VIDEO_SUFFIXES else f"{path}: no such folder")
+    if path.is_file():
+        if VideoFileDataset.detect(path):
+            return "video"
+        raise DataError(f"{path}: not a folder or a video file (give the sequence folder, or a stereo video "
+                        "with --calibration FILE)")
     for name, reader in READERS.items():
         if reader.detect(path):
             return name
@@ -78,6 +92,9 @@ def open_dataset(path: str | Path, config: Optional[DataConfig] = None) -> Stere
     validate_config(config)
     path = Path(path)
     layout = detect_layout(path) if config.layout == "auto" else config.layout
-    if config.layout != "auto" and not path.is_dir():
+    if config.layout != "auto" and not path.is_dir() and not (layout == "video" and path.is_file()):
         raise DataError(f"{path}: no such folder" if not path.exists() else f"{path}: not a folder")
+    if config.calibration and layout not in ("frames", "video"):
+        raise ConfigError(f"{path}: --calibration / data.calibration applies to frame folders and video files; "
+                          f"the {layout} layout reads its own calibration file")
     return READERS[layout](path, config)

@@ -55,7 +55,7 @@ from typing import Optional
 
 import numpy as np
 
-from slam.calibration import read_scared_yaml
+from slam.calibration import fit_calibration, read_scared_yaml
 from slam.datasets.config import DataConfig
 from slam.datasets.dataset import RawFrame, StereoDataset, match_groundtruth
 from slam.datasets.stereomis import wants_prerectified
@@ -188,7 +188,8 @@ class ScaredDataset(StereoDataset):
 
     @staticmethod
     def detect(path: Path) -> bool:
-        return (path / CALIB_FILE).is_file() or (path / VIDEO_FILE).is_file()
+        # (a calibration without data/ is a frame folder's or a video's)
+        return (path / VIDEO_FILE).is_file() or ((path / CALIB_FILE).is_file() and (path / "data").is_dir())
 
     def __init__(self, path: Path, config: DataConfig):
         path = Path(path)
@@ -200,12 +201,8 @@ class ScaredDataset(StereoDataset):
             raise DataError(f"{video_path}: video file not found (SCARED layout)")
         video = StackedStereoVideo(video_path)
         try:
-            calib = read_scared_yaml(calib_path, image_size=video.view_size)
-            if calib.image_size != video.view_size:
-                raise DataError(
-                    f"{video_path}: views are {video.view_size[0]}x{video.view_size[1]} but {calib_path} "
-                    f"is for {calib.image_size[0]}x{calib.image_size[1]}"
-                )
+            # SCARED files rarely name their image size: the principal point tells it
+            calib = fit_calibration(read_scared_yaml(calib_path), video.view_size)
             processor = make_rectifier(calib, config.rectify_mode, (config.width, config.height),
                                        already_rectified=wants_prerectified(config, False))
             n = video.num_frames

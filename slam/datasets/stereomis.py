@@ -25,7 +25,7 @@ from pathlib import Path
 
 from slam.calibration import read_stereomis_ini
 from slam.datasets.config import DataConfig
-from slam.datasets.dataset import RawFrame, StereoDataset, load_tum_groundtruth, read_mask, read_rgb, read_scaled_uint
+from slam.datasets.dataset import RawFrame, StereoDataset, load_groundtruth, read_mask, read_rgb, read_scaled_uint
 from slam.errors import DataError
 from slam.rectification import make_rectifier
 
@@ -105,7 +105,7 @@ class StereoMISDataset(StereoDataset):
         processor = make_rectifier(calib, config.rectify_mode, (config.width, config.height),
                                    already_rectified=wants_prerectified(config, True))
         n = len(self._pairs)
-        stamps, poses = load_tum_groundtruth(path / GT_FILE, n)
+        stamps, poses = load_groundtruth(path / GT_FILE, n, None, config.fps)
         super().__init__(path, config, processor, n, stamps, poses)
         self._masks_dir = path / "masks"
         self._depth_dir = path / "depth"

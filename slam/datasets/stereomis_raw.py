@@ -15,9 +15,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from slam.calibration import read_stereomis_ini
+from slam.calibration import fit_calibration, read_stereomis_ini
 from slam.datasets.config import DataConfig
-from slam.datasets.dataset import RawFrame, StereoDataset, load_tum_groundtruth, read_mask
+from slam.datasets.dataset import RawFrame, StereoDataset, load_groundtruth, read_mask
 from slam.datasets.stereomis import CALIB_FILE, GT_FILE, wants_prerectified
 from slam.datasets.video import StackedStereoVideo
 from slam.errors import DataError
@@ -33,7 +33,11 @@ class StereoMISRawDataset(StereoDataset):
 
     @staticmethod
     def detect(path: Path) -> bool:
-        return bool(find_videos(path))
+        # an mp4 with StereoMIS's calibration, or with no other calibration to use
+        from slam.calibration import CALIBRATION_NAMES
+
+        others = [name for name in CALIBRATION_NAMES if name != CALIB_FILE and (path / name).is_file()]
+        return bool(find_videos(path)) and ((path / CALIB_FILE).is_file() or not others)
 
     def __init__(self, path: Path, config: DataConfig):
         path = Path(path)
@@ -45,15 +49,11 @@ class StereoMISRawDataset(StereoDataset):
         calib = read_stereomis_ini(path / CALIB_FILE)
         video = StackedStereoVideo(videos[0])
         try:
-            if video.view_size != calib.image_size:
-                raise DataError(
-                    f"{video.path}: views are {video.view_size[0]}x{video.view_size[1]} but {calib.source} "
-                    f"is for {calib.image_size[0]}x{calib.image_size[1]}"
-                )
+            calib = fit_calibration(calib, video.view_size)
             processor = make_rectifier(calib, config.rectify_mode, (config.width, config.height),
                                        already_rectified=wants_prerectified(config, False))
             n = video.num_frames
-            stamps, poses = load_tum_groundtruth(path / GT_FILE, n)
+            stamps, poses = load_groundtruth(path / GT_FILE, n, None, config.fps or video.fps)
         except Exception:
             video.close()
             raise

@@ -1,4 +1,5 @@
-"""Reading stereo videos stored left-over-right (left view in the top half of each frame).
+"""Reading stereo videos: both views in each frame, the left above the right (top-bottom, as
+StereoMIS and SCARED record them) or beside it (side-by-side).
 
 Frames are decoded sequentially; a request for a frame behind the decoder or far ahead of it
 seeks (``CAP_PROP_POS_FRAMES``), a request a little ahead skips frames with ``grab``.
@@ -17,17 +18,66 @@ from slam.errors import DataError
 _MAX_GRAB_AHEAD = 64
 
 
+STEREO_LAYOUTS = ("top-bottom", "side-by-side")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm", ".wmv")
+
+
+def frame_size_of(path: Path) -> tuple[int, int]:
+    """``(width, height)`` of a video's frames (from its header, else its first frame)."""
+    cap = cv2.VideoCapture(str(path))
+    try:
+        if not cap.isOpened():
+            raise DataError(f"{path}: cannot open video (unsupported codec or corrupt file)")
+        size = (int(round(cap.get(cv2.CAP_PROP_FRAME_WIDTH))), int(round(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))))
+        if min(size) <= 0:
+            ok, first = cap.read()
+            if not ok or first is None:
+                raise DataError(f"{path}: cannot decode the first video frame")
+            size = (first.shape[1], first.shape[0])
+        return size
+    finally:
+        cap.release()
+
+
+def stereo_layout_of(frame_size: tuple[int, int], calib_size: tuple[int, int] | None, requested: str,
+                     where: str) -> str:
+    """How a video frame of ``(width, height)`` holds its two views: ``requested`` unless
+    ``auto``; else the layout whose view size is the calibration's (or an integer multiple or
+    fraction of it, keeping its aspect); without a size in the calibration, the frame's aspect
+    ratio (twice as tall as wide an image is top-bottom: endoscope views are wider than tall)."""
+    if requested in STEREO_LAYOUTS:
+        return requested
+    W, H = frame_size
+    views = {"top-bottom": (W, H // 2), "side-by-side": (W // 2, H)}
+    if calib_size is not None:
+        cw, ch = calib_size
+        fits = [name for name, (w, h) in views.items()
+                if any((w * k, h * k) == (cw, ch) or (w, h) == (cw * k, ch * k) for k in (1, 2, 3, 4))]
+        if len(fits) == 1:
+            return fits[0]
+        if not fits:
+            raise DataError(f"{where}: a {W}x{H} video frame holds neither two {cw}x{ch} views one above the other "
+                            "nor side by side (--stereo-layout, or another calibration)")
+    return "top-bottom" if H > W * 0.7 else "side-by-side"
+
+
 class StackedStereoVideo:
-    """A video whose frames hold the left view on top of the right view.
+    """A video whose frames hold both views: the left above the right (``top-bottom``) or to its
+    left (``side-by-side``).
 
     Attributes:
         path: the video file.
+        layout: ``top-bottom`` or ``side-by-side``.
         num_frames: frames in the video (from its header).
+        frame_size: ``(width, height)`` of a whole video frame.
         view_size: ``(width, height)`` of one view.
         fps: the video's frame rate (0 if unknown).
     """
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, layout: str = "top-bottom"):
+        if layout not in STEREO_LAYOUTS:
+            raise ValueError(f"unknown stereo layout '{layout}' ({', '.join(STEREO_LAYOUTS)})")
+        self.layout = layout
         self.path = Path(path)
         if not self.path.is_file():
             raise DataError(f"{self.path}: video file not found")
@@ -49,10 +99,14 @@ class StackedStereoVideo:
         if self.num_frames <= 0:
             self.close()
             raise DataError(f"{self.path}: cannot determine the number of video frames")
-        if height % 2:
+        self.frame_size = (width, height)
+        if layout == "top-bottom" and height % 2:
             self.close()
             raise DataError(f"{self.path}: frame height {height} is odd; expected the left view on top of the right view")
-        self.view_size = (width, height // 2)
+        if layout == "side-by-side" and width % 2:
+            self.close()
+            raise DataError(f"{self.path}: frame width {width} is odd; expected the left view beside the right view")
+        self.view_size = (width, height // 2) if layout == "top-bottom" else (width // 2, height)
         self._next = 0  # index of the frame the next cap.read() returns
 
     def _open(self) -> None:
@@ -109,9 +163,12 @@ class StackedStereoVideo:
             raise DataError(f"{self.path}: cannot decode frame {index} of {self.num_frames}")
         self._next = index + 1
         w, h = self.view_size
-        if frame.shape[0] != 2 * h or frame.shape[1] != w:
-            raise DataError(f"{self.path}: frame {index} is {frame.shape[1]}x{frame.shape[0]}, expected {w}x{2 * h}")
+        if (frame.shape[1], frame.shape[0]) != self.frame_size:
+            raise DataError(f"{self.path}: frame {index} is {frame.shape[1]}x{frame.shape[0]}, expected "
+                            f"{self.frame_size[0]}x{self.frame_size[1]}")
         if frame.ndim == 2:
             frame = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
         rgb = cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
-        return np.ascontiguousarray(rgb[:h]), np.ascontiguousarray(rgb[h:])
+        if self.layout == "top-bottom":
+            return np.ascontiguousarray(rgb[:h]), np.ascontiguousarray(rgb[h:])
+        return np.ascontiguousarray(rgb[:, :w]), np.ascontiguousarray(rgb[:, w:])

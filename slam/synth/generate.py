@@ -79,7 +79,7 @@ def _files_meaning(raw: bool, masks: bool, video: str | None) -> dict:
 
 def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = (640, 512), seed: int = 0,
              raw: bool = False, fps: float = 25.0, progress: bool = False,
-             breathing_follows_tissue: float = 0.0, camera_speed: float = 1.0) -> Path:
+             breathing_follows_tissue: float = 0.0, camera_speed: float = 1.0, codec: str = "mp4v") -> Path:
     """Render a synthetic stereo sequence with ground truth into ``out_dir``.
 
     Args:
@@ -97,6 +97,8 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
             independent of the image.
         camera_speed: scales the rigid and scanning cameras' motion per frame (1: 0.3-0.9 mm,
             0.1: a camera creeping at 0.03-0.09 mm per frame, below tracking's still threshold).
+        codec: the raw video's codec: ``mp4v`` (lossy, ``.mp4``, the StereoMIS raw layout) or
+            ``ffv1`` (lossless, ``.avi``, read as a stereo video file).
 
     Returns:
         ``out_dir`` as a Path.
@@ -128,7 +130,7 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
     instrument = InstrumentMotion(scene, seed, poses[0], breathing) if scenario == "deforming" else None
     renderer = Renderer(scene, breathing, mm_per_px=scene.rest_depth_mm / rig.left.K[0, 0])
     masks = instrument is not None
-    writer = SequenceWriter(out, raw, width, height, fps, masks=masks)
+    writer = SequenceWriter(out, raw, width, height, fps, masks=masks, codec=codec)
 
     bar = None
     if progress:

@@ -54,7 +54,7 @@ def prepare_out_dir(out_dir: Path) -> None:
                     f.unlink()
             if not any(d.iterdir()):  # an empty frame folder would mislead layout detection
                 d.rmdir()
-    for f in out_dir.glob("*.mp4"):
+    for f in [*out_dir.glob("*.mp4"), *out_dir.glob("*.avi")]:
         f.unlink()
     (out_dir / "synth.json").write_text(json.dumps({"generator": "slam.synth", "complete": False}) + "\n")
 
@@ -64,11 +64,15 @@ def _imwrite(path: Path, img: np.ndarray) -> None:
         raise DataError(f"{path}: cannot write image")
 
 
+#: raw-video codecs -> file suffix: mp4v (lossy, as recorders write) or ffv1 (lossless)
+VIDEO_CODECS = {"mp4v": ".mp4", "ffv1": ".avi"}
+
+
 class SequenceWriter:
     """Writes frames in order; PNG encoding and video writing run on one background thread."""
 
     def __init__(self, out_dir: Path, raw: bool, width: int, height: int, fps: float,
-                 masks: bool, video_name: Optional[str] = None):
+                 masks: bool, video_name: Optional[str] = None, codec: str = "mp4v"):
         self.out_dir = out_dir
         self.raw = raw
         self.masks = masks
@@ -79,11 +83,13 @@ class SequenceWriter:
         if masks:
             (out_dir / "masks").mkdir(exist_ok=True)
         if raw:
-            self.video_path = out_dir / f"{video_name or out_dir.name}.mp4"
-            self._video = cv2.VideoWriter(str(self.video_path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps),
+            if codec not in VIDEO_CODECS:
+                raise DataError(f"unknown video codec '{codec}' ({', '.join(VIDEO_CODECS)})")
+            self.video_path = out_dir / f"{video_name or out_dir.name}{VIDEO_CODECS[codec]}"
+            self._video = cv2.VideoWriter(str(self.video_path), cv2.VideoWriter_fourcc(*codec.upper()), float(fps),
                                           (width, 2 * height))
             if not self._video.isOpened():
-                raise DataError(f"{self.video_path}: cannot open an mp4v video writer")
+                raise DataError(f"{self.video_path}: cannot open a {codec} video writer")
         else:
             for sub in ("video_frames", "depth", "nonrigid"):
                 (out_dir / sub).mkdir(exist_ok=True)

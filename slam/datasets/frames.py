@@ -1,0 +1,184 @@
+"""Stereo frame folders as recordings circulate: a left and a right folder of images beside a
+calibration file.
+
+::
+
+    <seq>/
+      left_image/  right_image/      the two views; found by name, case-insensitive: left*/right*
+                                     (same suffix), image01/image02, image_0/image_1, l/r
+        frame_00001.jpg ...          PNG, JPEG or TIFF, grey or colour, 8 or 16 bit; paired by stem
+                                     with the side token stripped (Left_0001 / Right_0001), else
+                                     by order when the counts agree
+      endoscope_calibration.yaml     or StereoCalibration.ini, calibration.yaml, calibration.json
+                                     (slam.calibration.read_calibration), or data.calibration
+      timestamps.txt                 optional: one timestamp per frame (seconds); else index / fps
+      groundtruth.txt                optional, TUM, metres, T_wc of the original left camera
+      masks/                         optional, per left frame (paired like the frames), non-zero = tissue
+
+Rectification (``data.rectified: auto``): the frames are taken as rectified when the calibration
+says so (no distortion and no rotation between the cameras, :func:`slam.calibration.is_rectified`;
+a plain ``calibration.yaml`` always), else rectified with it in ``data.rectify_mode``. A calibration
+made at another size than the frames is scaled by the integer factor that fits, or refused
+(:func:`slam.calibration.fit_to_frames`).
+"""
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from slam.calibration import (CALIBRATION_NAMES, RawStereoCalibration, fit_calibration, is_rectified,
+                              read_calibration, rectified_camera)
+from slam.datasets.config import DataConfig
+from slam.datasets.dataset import RawFrame, StereoDataset, load_groundtruth
+from slam.datasets.images import (bit_depth, list_frame_images, pair_files, pairing_stem, read_image, read_timestamps,
+                                  to_rgb8)
+from slam.errors import ConfigError, DataError
+from slam.rectification import ResizeOnly, make_rectifier
+from vo.camera import StereoCamera
+
+GT_FILE = "groundtruth.txt"
+TIMESTAMPS_FILE = "timestamps.txt"
+MASKS_DIR = "masks"
+# (left, right) folder names, case-insensitive; "left*" pairs with "right*" of the same suffix
+_FIXED_PAIRS = (("image01", "image02"), ("image_0", "image_1"), ("l", "r"))
+log = logging.getLogger("slam")
+_SIDE_PREFIX = re.compile(r"^(left|right)(.*)$", re.IGNORECASE)
+
+
+def find_stereo_folders(path: Path) -> Optional[tuple[Path, Path]]:
+    """The left and right folders of a sequence folder, or None. DataError when the names are
+    ambiguous (two candidate pairs)."""
+    dirs = {d.name.lower(): d for d in path.iterdir() if d.is_dir()}
+    pairs = []
+    sides: dict[str, dict[str, Path]] = {"left": {}, "right": {}}
+    for name, d in dirs.items():
+        m = _SIDE_PREFIX.match(name)
+        if m:
+            sides[m.group(1).lower()][m.group(2)] = d
+    for suffix in sorted(set(sides["left"]) & set(sides["right"])):
+        pairs.append((sides["left"][suffix], sides["right"][suffix]))
+    for left, right in _FIXED_PAIRS:
+        if left in dirs and right in dirs:
+            pairs.append((dirs[left], dirs[right]))
+    if not pairs:
+        return None
+    if len(pairs) > 1:
+        names = ", ".join(f"{a.name}/{b.name}" for a, b in pairs)
+        raise DataError(f"{path}: several left/right folder pairs ({names}); keep one")
+    return pairs[0]
+
+
+def find_calibration(path: Path, config: DataConfig) -> Path:
+    """``data.calibration`` if set, else the folder's calibration file (one of the known names, or
+    the only ``.ini`` / ``.json`` / ``.yaml`` file in it)."""
+    if config.calibration:
+        given = Path(config.calibration).expanduser()
+        if not given.is_file():
+            raise DataError(f"{given}: calibration file not found (data.calibration)")
+        return given
+    for name in CALIBRATION_NAMES:
+        if (path / name).is_file():
+            return path / name
+    candidates = [p for p in sorted(path.iterdir()) if p.is_file() and p.suffix.lower() in (".ini", ".json", ".yaml", ".yml")
+                  and p.name != "config.yaml"]
+    if len(candidates) == 1:
+        return candidates[0]
+    if not candidates:
+        raise DataError(f"{path}: no calibration file ({', '.join(CALIBRATION_NAMES)}; or --calibration FILE)")
+    raise DataError(f"{path}: several calibration candidates ({', '.join(p.name for p in candidates)}); "
+                    "name one with --calibration FILE")
+
+
+def calibration_processor(calib: RawStereoCalibration | StereoCamera, frame_size: tuple[int, int],
+                          config: DataConfig, where: str):
+    """The frame processor (rectifier or resizer) of a calibration used with frames of
+    ``frame_size``: the calibration fitted to the frames, rectified views taken as they are."""
+    out = (config.width, config.height)
+    if isinstance(calib, StereoCamera):
+        if config.rectified == "no":
+            raise ConfigError(f"{where}: data.rectified is no, but the calibration is a rectified camera "
+                              "(fx fy cx cy baseline_mm)")
+        camera = calib
+        if (camera.width, camera.height) != tuple(frame_size):
+            w, h = frame_size
+            if camera.width * h != camera.height * w:
+                raise DataError(f"{where}: calibration for {camera.width}x{camera.height} images does not fit "
+                                f"frames of {w}x{h}")
+            log.info("%s: calibration for %dx%d scaled to the frames' %dx%d", where, camera.width, camera.height, w, h)
+            camera = camera.scaled(w, h)
+        return ResizeOnly(camera, out)
+    fitted = fit_calibration(calib, frame_size)
+    rectified = is_rectified(fitted) if config.rectified == "auto" else config.rectified == "yes"
+    if rectified and is_rectified(fitted):
+        return ResizeOnly(rectified_camera(fitted), out)
+    return make_rectifier(fitted, config.rectify_mode, out, already_rectified=rectified)
+
+
+class FrameFolderDataset(StereoDataset):
+    layout = "frames"
+
+    @staticmethod
+    def detect(path: Path) -> bool:
+        return find_stereo_folders(path) is not None
+
+    def __init__(self, path: Path, config: DataConfig):
+        path = Path(path)
+        folders = find_stereo_folders(path)
+        if folders is None:
+            raise DataError(f"{path}: no left and right image folders (left*/right*, image01/image02, "
+                            "image_0/image_1 or l/r)")
+        left_dir, right_dir = folders
+        self._pairs = pair_files(list_frame_images(left_dir), list_frame_images(right_dir), left_dir, right_dir)
+        first = [read_image(p) for p in self._pairs[0]]
+        if first[0].shape[:2] != first[1].shape[:2]:
+            raise DataError(f"{self._pairs[0][0]} is {first[0].shape[1]}x{first[0].shape[0]} but "
+                            f"{self._pairs[0][1]} is {first[1].shape[1]}x{first[1].shape[0]}")
+        self.bit_depth = bit_depth(first)
+        frame_size = (first[0].shape[1], first[0].shape[0])
+        calib_path = find_calibration(path, config)
+        self.calibration_path = calib_path
+        processor = calibration_processor(read_calibration(calib_path), frame_size, config, str(calib_path))
+        n = len(self._pairs)
+        stamps = read_timestamps(path / TIMESTAMPS_FILE, n)
+        self.timestamps_source = "timestamps.txt" if stamps is not None else "fps"
+        stamps, poses = load_groundtruth(path / GT_FILE, n, stamps, config.fps)
+        super().__init__(path, config, processor, n, stamps, poses)
+        self.frame_size = frame_size
+        self._masks = self._pair_masks(path / MASKS_DIR, left_dir) if config.use_mask_files else {}
+
+    def _pair_masks(self, masks_dir: Path, left_dir: Path) -> dict[int, Path]:
+        """Mask files by frame, paired with the left frames like the frames are paired."""
+        if not masks_dir.is_dir():
+            return {}
+        masks = list_frame_images(masks_dir)
+        if not masks:
+            return {}
+        lefts = [left for left, _ in self._pairs]
+        pairs = pair_files(lefts, masks, left_dir, masks_dir) if len(masks) == len(lefts) else None
+        if pairs is None:
+            by_stem = {pairing_stem(m): m for m in masks}
+            found = {k: by_stem[pairing_stem(p)] for k, p in enumerate(lefts) if pairing_stem(p) in by_stem}
+            if not found:
+                raise DataError(f"{masks_dir}: {len(masks)} masks pair with none of the {len(lefts)} frames of {left_dir}")
+            return found
+        return {k: m for k, (_, m) in enumerate(pairs)}
+
+    def _read(self, index: int) -> RawFrame:
+        left_path, right_path = self._pairs[index]
+        left = to_rgb8(read_image(left_path), self.bit_depth, left_path)
+        right = to_rgb8(read_image(right_path), self.bit_depth, right_path)
+        if left.shape != right.shape or (left.shape[1], left.shape[0]) != self.frame_size:
+            raise DataError(f"{left_path}: frame size {left.shape[1]}x{left.shape[0]} differs from the sequence's "
+                            f"{self.frame_size[0]}x{self.frame_size[1]} (or from its right view)")
+        instrument = None
+        mask_path = self._masks.get(index)
+        if mask_path is not None:
+            mask = read_image(mask_path)
+            if mask.shape[:2] != left.shape[:2]:
+                raise DataError(f"{mask_path}: mask is {mask.shape[1]}x{mask.shape[0]}, the frame {left.shape[1]}x{left.shape[0]}")
+            instrument = (mask.max(axis=2) if mask.ndim == 3 else mask) > 0
+        return RawFrame(left=left, right=right, instrument=instrument, source=str(left_path))
