@@ -304,9 +304,11 @@ def at_frame_rate(config: SlamConfig, fps: float) -> SlamConfig:
     (``tracking.keyframe_still_mm``, ``depth.temporal_still_mm``) and the plausible motion
     (``solver.max_translation_mm``) by ``REFERENCE_FPS / fps``; the depth filter's gate
     (``depth.temporal_gate_mm``) likewise but never below its value (it also spans the stereo
-    noise, which the rate does not change); windows counted in frames (``tracking.keyframe_gap``,
-    ``map.unstable_window``) by ``fps / REFERENCE_FPS``, at least 1. At ``REFERENCE_FPS`` the
-    config itself."""
+    noise, which the rate does not change); the keyframe's gap in frames (``tracking.keyframe_gap``)
+    by ``fps / REFERENCE_FPS``, at least 1. The map's unstable window stays counted in frames: it
+    is how many observations a new surfel gets to become stable (in seconds, 5 fps left it four
+    frames: most of the last frame's surfels were removed before the next one was tracked). At
+    ``REFERENCE_FPS`` the config itself."""
     if fps <= 0:
         raise ConfigError(f"frame rate must be positive, got {fps}")
     if fps == REFERENCE_FPS:
@@ -318,7 +320,6 @@ def at_frame_rate(config: SlamConfig, fps: float) -> SlamConfig:
     out.solver.max_translation_mm *= k
     out.depth.temporal_gate_mm *= max(1.0, k)
     out.tracking.keyframe_gap = max(1, int(round(config.tracking.keyframe_gap / k)))
-    out.map.unstable_window = max(1, int(round(config.map.unstable_window / k)))
     return out
 
 

@@ -213,7 +213,7 @@ class Pipeline:
         for stage, ms in timings.items():
             self._time(stage, ms)
         gt_pose = frame.gt_pose @ self.R1.T if self.tracker.known_poses else None
-        result = self.tracker.track(k, index, view, gt_pose)
+        result = self.tracker.track(k, view, gt_pose)
         for stage, ms in result.timings:
             self._time(stage, ms)
         track = result.track

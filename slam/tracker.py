@@ -189,16 +189,17 @@ class Tracker:
         return not self.frame2model or self.config.tracking.flow_reference == "last_frame"
 
     # ------------------------------------------------------------------ one frame
-    def track(self, position: int, index: int, view: View, gt_pose: Optional[np.ndarray] = None) -> FrameResult:
-        """Track the frame at sequence ``position`` (dataset frame ``index``) given its ``view``;
+    def track(self, position: int, view: View, gt_pose: Optional[np.ndarray] = None) -> FrameResult:
+        """Track the frame at ``position`` of the frames processed (0, 1, 2, ... whatever frames
+        were selected: the map's time window counts them) given its ``view``;
         with ``tracking.poses: groundtruth``, ``gt_pose`` (rectified ``T_wc``, mm) is its pose.
 
         A frame that cannot be tracked keeps the last good pose and reference."""
         if self.known_poses:
-            return self._map_at_known_pose(index, view, gt_pose)
+            return self._map_at_known_pose(position, view, gt_pose)
         if self.last_view is None:
             result = FrameResult(self.pose, reference="first", health=self._health(None))
-            self._fuse(view, None, self.pose, index, result)
+            self._fuse(view, None, self.pose, position, result)
             self._advance(position, view, self.pose, result)
             return result
         result = FrameResult(self.pose)
@@ -229,7 +230,7 @@ class Tracker:
         result.pose = pose
         result.health.update(self._health(track))
         self.velocity = np.linalg.inv(self.pose) @ pose
-        self._fuse(view, track.w3d, pose, index, result)
+        self._fuse(view, track.w3d, pose, position, result)
         self._advance(position, view, pose, result)
         return result
 
@@ -307,7 +308,7 @@ class Tracker:
         return self.map.render(self.odometry.K, torch.as_tensor(pose, dtype=torch.float32), self.camera.height,
                                self.camera.width, colour=colour)
 
-    def _fuse(self, view: View, w3d: Optional[torch.Tensor], pose: np.ndarray, index: int,
+    def _fuse(self, view: View, w3d: Optional[torch.Tensor], pose: np.ndarray, position: int,
               result: FrameResult) -> None:
         """Fuse ``view`` at ``pose``, weighted by its ``(1, 1, H, W)`` learned ``w3d`` if given."""
         if self.map is None:
@@ -318,10 +319,10 @@ class Tracker:
         if w3d is not None and self.learned_fusion_weight:
             weight = normalised_fusion_weight(w3d[0, 0], valid)
         self.map.fuse(view.depth[0, 0], self.exposure.colour(view), self.odometry.K,
-                      torch.as_tensor(pose, dtype=torch.float32), frame_index=index, weight=weight, valid=valid)
+                      torch.as_tensor(pose, dtype=torch.float32), frame_index=position, weight=weight, valid=valid)
         result.time("fusion", t0)
 
-    def _map_at_known_pose(self, index: int, view: View, pose: np.ndarray) -> FrameResult:
+    def _map_at_known_pose(self, position: int, view: View, pose: np.ndarray) -> FrameResult:
         """``tracking.poses: groundtruth``: fuse ``view`` at its known ``pose``. The learned w3D
         is what keeps badly matched depth, moving tissue and instruments out of the map, so each
         frame is still matched to the previous one for it (no pose is solved for)."""
@@ -335,6 +336,6 @@ class Tracker:
             problem = self.odometry.residual_problem(view, self.last_view, corr)
             _, w3d = self.odometry.weight_maps(view, self.last_view, corr, problem)
             result.timings += [("flow", (t1 - t0) * 1000.0), ("weights", (time.perf_counter() - t1) * 1000.0)]
-        self._fuse(view, w3d, pose, index, result)
+        self._fuse(view, w3d, pose, position, result)
         self.pose, self.last_view = pose, view
         return result

@@ -4,9 +4,9 @@
 For each resolution a map is built by fusing a raster scan of a large synthetic tissue-like
 height field (exact depth by ray casting, analytic texture) until it holds ``--surfels`` surfels;
 then ``--frames`` further frames revisiting the mapped area are fused and rendered, timing every
-stage.  Prints a table of median milliseconds per stage.  ``render`` is the model view frame2model
-tracking renders by default (depth, normals, confidence: the flow goes against the last frame);
-``render_rgb`` also blends the colour (``tracking.flow_reference: rendered`` or ``chained``).
+stage.  Prints a table of median milliseconds per stage.  ``render`` is the depth-only model view
+(depth, normals, confidence: what ``tracking.flow_reference: last_frame`` uses, and the coverage test
+of every frame); ``render_rgb`` also blends the colour (the default ``rendered`` flow reference).
 
     .venv/bin/python tools/benchmark_mapping.py                      # 320x256 and 640x512, 2 threads
     .venv/bin/python tools/benchmark_mapping.py --sizes 320x256 --threads 1 --surfels 300000
