@@ -34,7 +34,7 @@ What it computes
 ----------------
 Each keyframe sequence is run with our pipeline (``slam.runner.run_from_config``) in each ``--modes``
 mode (default ``frame2model``, as the paper on SCARED) with ``--config`` (default
-``configs/scared_frame2model.yaml``: 640x512, pseudo rectification) and ``--set`` overrides, and
+``configs/scared_frame2model.yaml``: 640x512, full rectification) and ``--set`` overrides, and
 evaluated with ``slam.evaluation.evaluate``: ATE-RMSE (mm, SE(3)-aligned; ``--align auto``:
 first-pose alignment for a static camera), RPE-trans (mm) and RPE-rot (deg), mean ± std.
 

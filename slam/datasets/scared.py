@@ -8,8 +8,9 @@
       data/frame_data/frame_data000000.json ...   per-frame json with "camera-pose" (4x4), or
       data/frame_data.tar.gz           the same json files inside (read in place with tarfile)
 
-The video is not rectified (``rectified: auto`` = no). SCARED's stereo rotations are known to be
-poor for full rectification; ``rectify_mode: pseudo`` is the usual choice.
+The video is not rectified (``rectified: auto`` = no) and is rectified in ``data.rectify_mode``
+(default ``full``: the ``pseudo`` mode, which rotates neither view, tracked worse on real SCARED
+video and on raw synthetic rigs, docs/experiments.md).
 
 Pose convention
 ---------------
