@@ -80,6 +80,11 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--camera-speed", type=float, default=1.0, metavar="S",
                     help="scale of the rigid and scanning cameras' motion per frame (default 1: 0.3-0.9 mm; "
                          "0.1: a camera creeping below tracking's still threshold)")
+    sy.add_argument("--appearance", metavar="SPEC",
+                    help="how the tissue looks: 'random' (drawn from the seed: texture, highlights, smoke, exposure, "
+                         "vignetting, colour) or KEY=VALUE,... with keys texture (1 rich .. 0 nearly textureless), "
+                         "highlights (0 .. 1: a fifth of the view), haze (smoke 0 .. 1), exposure_jitter, vignetting, "
+                         "tint; default: the generator's own look")
 
     ins = sub.add_parser("inspect", help="what the readers find in a sequence, and a rectified pair to check",
                          description="Print what the readers found (layout, frames, sizes, calibration, rectification, "
@@ -164,10 +169,11 @@ def parse_size(text: str) -> tuple[int, int]:
 
 def cmd_synth(args) -> int:
     from slam.synth import generate
+    from slam.synth.appearance import parse_appearance
 
     out = generate(args.out, args.scenario, frames=args.frames, size=parse_size(args.size), seed=args.seed,
                    raw=args.raw, progress=True, codec=args.codec, breathing_follows_tissue=args.breathing_follows_tissue,
-                   camera_speed=args.camera_speed)
+                   camera_speed=args.camera_speed, appearance=parse_appearance(args.appearance, args.seed))
     print(f"wrote {args.frames} frames ({args.scenario}, seed {args.seed}) to {out}")
     return 0
 

@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.errors import DataError
+from slam.synth.appearance import Appearance, ExposureWalk
 from slam.synth.camera_paths import make_path
 from slam.synth.cameras import rectified_rig, raw_rig
 from slam.synth.deformation import FrameDeformation, make_breathing
@@ -79,7 +80,8 @@ def _files_meaning(raw: bool, masks: bool, video: str | None) -> dict:
 
 def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = (640, 512), seed: int = 0,
              raw: bool = False, fps: float = 25.0, progress: bool = False,
-             breathing_follows_tissue: float = 0.0, camera_speed: float = 1.0, codec: str = "mp4v") -> Path:
+             breathing_follows_tissue: float = 0.0, camera_speed: float = 1.0, codec: str = "mp4v",
+             appearance: Appearance | None = None) -> Path:
     """Render a synthetic stereo sequence with ground truth into ``out_dir``.
 
     Args:
@@ -99,6 +101,8 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
             0.1: a camera creeping at 0.03-0.09 mm per frame, below tracking's still threshold).
         codec: the raw video's codec: ``mp4v`` (lossy, ``.mp4``, the StereoMIS raw layout) or
             ``ffv1`` (lossless, ``.avi``, read as a stereo video file).
+        appearance: texture strength, highlights, smoke, exposure changes, vignetting and tissue
+            colour (:class:`slam.synth.appearance.Appearance`; default: the generator's own look).
 
     Returns:
         ``out_dir`` as a Path.
@@ -123,12 +127,14 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
     out = Path(out_dir)
     prepare_out_dir(out)
 
-    scene = make_scene(seed)
+    look = appearance if appearance is not None else Appearance()
+    scene = make_scene(seed, float(look.texture))
     rig = raw_rig(width, height, seed) if raw else rectified_rig(width, height)
     poses = make_path(scenario, frames, seed, speed)
     breathing = make_breathing(scene, seed, follows) if scenario in BREATHES else None
     instrument = InstrumentMotion(scene, seed, poses[0], breathing) if scenario == "deforming" else None
-    renderer = Renderer(scene, breathing, mm_per_px=scene.rest_depth_mm / rig.left.K[0, 0])
+    renderer = Renderer(scene, breathing, mm_per_px=scene.rest_depth_mm / rig.left.K[0, 0], appearance=look, seed=seed)
+    exposure = ExposureWalk(look.exposure_jitter, seed)
     masks = instrument is not None
     writer = SequenceWriter(out, raw, width, height, fps, masks=masks, codec=codec)
 
@@ -145,8 +151,9 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
                 deform, capsules = FrameDeformation(t=t, breathing=breathing), None
             T = poses[i]
             light = T[:3, 3]  # the light sits at the left camera's optical centre
-            left = renderer.render(rig.left, T, light, deform, capsules, np.random.default_rng([seed, 100, i, 0]))
-            right = renderer.render(rig.right, T, light, deform, capsules, np.random.default_rng([seed, 100, i, 1]))
+            gain = exposure.gain()
+            left = renderer.render(rig.left, T, light, deform, capsules, np.random.default_rng([seed, 100, i, 0]), i, gain)
+            right = renderer.render(rig.right, T, light, deform, capsules, np.random.default_rng([seed, 100, i, 1]), i, gain)
             writer.write(i, left.rgb, right.rgb,
                          depth=None if raw else left.depth,
                          nonrigid=None if raw else left.nonrigid,
@@ -191,6 +198,7 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
         "breathing_period_s": breathing.period_s if breathing is not None else None,
         "breathing_follows_tissue": follows,
         "camera_speed": speed,
+        "appearance": look.as_dict(),
         "files": _files_meaning(raw, masks, video),
         "notes": ("raw mode: depth/ and nonrigid/ are not written (ground truth is for rectified output only)"
                   if raw else ""),

@@ -14,6 +14,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
+from slam.synth.appearance import Appearance
 from slam.synth.cameras import ViewCamera
 from slam.synth.deformation import Breathing, FrameDeformation
 from slam.synth.instrument import Capsule, capsule_normal, intersect_capsule, intersect_instrument
@@ -23,6 +24,12 @@ from slam.synth.shading import SRGB_TO_LINEAR, Sensor, blinn_phong
 MAX_ITERATIONS = 40
 TOLERANCE_MM = 1e-4  # stop when no depth changes by more than this
 TISSUE_KS, TISSUE_SHININESS = 2.5, 400.0
+# Appearance.highlights = 1: a wet film everywhere whose lobe is this broad (a fifth of a frontal
+# 640x512 view saturates, tests/test_synth.py)
+FILM_SHININESS = 60.0
+SMOKE_RGB = np.array([0.62, 0.60, 0.58], np.float32)  # radiance of the veil scattered by smoke
+SMOKE_FEATURE_PX = 0.25  # the smoke's blobs, as a share of the image width
+SMOKE_DRIFT = 0.02  # share of the image width the smoke drifts per frame
 METAL = [  # albedo, ks, shininess per capsule material (head, shaft)
     (np.array([0.55, 0.56, 0.58], np.float32), 1.6, 60.0),
     (np.array([0.30, 0.31, 0.33], np.float32), 1.2, 40.0),
@@ -74,8 +81,11 @@ def _shade_instrument(P: np.ndarray, idx: np.ndarray, capsules: list[Capsule], l
 class Renderer:
     """Renders views of one scene (tissue, optional breathing) with a fixed texture level."""
 
-    def __init__(self, scene: TissueScene, breathing: Optional[Breathing], mm_per_px: float, exposure: float = 1.0):
+    def __init__(self, scene: TissueScene, breathing: Optional[Breathing], mm_per_px: float, exposure: float = 1.0,
+                 appearance: Appearance = Appearance(), seed: int = 0):
         self.scene = scene
+        self.appearance = appearance
+        self.seed = int(seed)
         G = scene.geo.size
         zeros = np.zeros((G, G), np.float32)
         amp = breathing.amp if breathing is not None else zeros
@@ -91,6 +101,40 @@ class Renderer:
         self.albedo = scene.albedo[self.level]
         self.exposure = exposure
         self._sensors: dict[int, Sensor] = {}
+        self._smoke: Optional[np.ndarray] = None
+        a = appearance
+        self.tint = (None if a.tint == 1.0 else
+                     np.array([a.tint ** 0.5, a.tint ** -0.5, a.tint ** -0.5], np.float32))
+        if a.highlights > 0:
+            h = np.float32(a.highlights)
+            self.shininess = float(TISSUE_SHININESS ** (1 - h) * FILM_SHININESS ** h)
+        else:
+            self.shininess = TISSUE_SHININESS
+
+    def specular(self, wet: np.ndarray) -> np.ndarray:
+        """Per-pixel specular strength from the surface's wetness (0-1)."""
+        ks = TISSUE_KS * wet * wet
+        h = self.appearance.highlights
+        if h > 0:
+            ks = ks + np.float32(h * TISSUE_KS) * (1 - wet * wet)
+        return ks
+
+    def smoke(self, shape: tuple[int, int], frame: int) -> np.ndarray:
+        """The smoke's density ``(H, W)`` in [0, 1] at ``frame`` (a smooth field drifting across
+        the view; the same for both views of a frame)."""
+        H, W = shape
+        if self._smoke is None or self._smoke.shape[1] < W:
+            rng = np.random.default_rng([self.seed, 9])
+            size = 4 * max(H, W)
+            field = cv2.GaussianBlur(rng.standard_normal((size, size)).astype(np.float32), (0, 0),
+                                     SMOKE_FEATURE_PX * W / 2.5, borderType=cv2.BORDER_REFLECT_101)
+            field = (field - field.mean()) / max(float(field.std()), 1e-9)
+            self._smoke = np.clip(0.6 + 0.2 * field, 0.0, 1.0).astype(np.float32)
+        size = self._smoke.shape[0]
+        shift = int(round(frame * SMOKE_DRIFT * W))
+        rows = (np.arange(H) + shift // 3) % size
+        cols = (np.arange(W) + shift) % size
+        return self.appearance.haze * self._smoke[np.ix_(rows, cols)]
 
     # -- tissue ---------------------------------------------------------------------------
     def cast_tissue(self, o: np.ndarray, d: np.ndarray, deform: FrameDeformation, iterations: int = MAX_ITERATIONS,
@@ -151,12 +195,15 @@ class Renderer:
     def albedo_at(self, x, y) -> np.ndarray:
         mx, my = self.tex_grid.to_map(x, y)
         srgb = cv2.remap(self.albedo, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
-        return SRGB_TO_LINEAR[srgb]
+        linear = SRGB_TO_LINEAR[srgb]
+        return linear if self.tint is None else np.clip(linear * self.tint, 0.0, 1.0)
 
     # -- one view -------------------------------------------------------------------------
     def render(self, cam: ViewCamera, T_wl: np.ndarray, light: np.ndarray, deform: FrameDeformation,
-               capsules: Optional[list[Capsule]], rng: np.random.Generator) -> ViewImages:
-        """Render ``cam`` of the rig whose left camera is at ``T_wl``; light at ``light`` (world)."""
+               capsules: Optional[list[Capsule]], rng: np.random.Generator, frame: int = 0,
+               gain: float = 1.0) -> ViewImages:
+        """Render ``cam`` of the rig whose left camera is at ``T_wl``; light at ``light`` (world);
+        ``frame`` places the smoke, ``gain`` is the automatic exposure's factor on this frame."""
         o, d = cam.world_rays(T_wl)
         s, x, y, smp, u = self.cast_tissue(o, d, deform)
         P = o.astype(np.float32) + s[..., None] * d
@@ -181,7 +228,7 @@ class Renderer:
                 blocked |= intersect_capsule(P + 0.05 * Ld, Ld, cap) < dist
             shadow = np.where(blocked, np.float32(0.12), np.float32(1.0))
 
-        rad = blinn_phong(albedo, P, n, light, o, I0, TISSUE_KS * wet * wet, TISSUE_SHININESS, wrap=0.2, shadow=shadow)
+        rad = blinn_phong(albedo, P, n, light, o, I0, self.specular(wet), self.shininess, wrap=0.2, shadow=shadow)
         rad += albedo * np.float32(0.02)  # a little ambient (inter-reflections)
         depth = s.copy()
         tissue = np.ones(s.shape, bool)
@@ -193,8 +240,11 @@ class Renderer:
                 depth[on_inst] = inst_depth[on_inst]
         nonrigid = np.sqrt(u[0] ** 2 + u[1] ** 2 + u[2] ** 2) if deform.active else np.zeros_like(s)
         nonrigid = np.where(tissue, nonrigid, np.float32(0))
+        if self.appearance.haze > 0:
+            a = self.smoke(s.shape, frame)[..., None]
+            rad = rad * (1 - a) + a * SMOKE_RGB
         sensor = self._sensors.get(id(cam))
         if sensor is None:
-            sensor = self._sensors[id(cam)] = Sensor(cam.rays, self.exposure)
-        rgb = sensor.capture(rad, rng)
+            sensor = self._sensors[id(cam)] = Sensor(cam.rays, self.exposure, vignetting=self.appearance.vignetting)
+        rgb = sensor.capture(rad, rng, gain)
         return ViewImages(rgb=rgb, depth=depth.astype(np.float32), nonrigid=nonrigid.astype(np.float32), tissue=tissue)

@@ -139,8 +139,9 @@ def make_height(rng: np.random.Generator, grid: Grid) -> np.ndarray:
 
 
 @lru_cache(maxsize=2)
-def make_scene(seed: int) -> TissueScene:
-    """The tissue of ``seed`` (cached: scenarios with the same seed share it)."""
+def make_scene(seed: int, texture: float = 1.0) -> TissueScene:
+    """The tissue of ``seed`` (cached: scenarios with the same seed share it); ``texture`` scales
+    the albedo's fine structure (:func:`slam.synth.texture.make_albedo`), not the geometry."""
     geo = Grid(HALF_EXTENT_MM, GEO_RES_MM)
     tex = Grid(HALF_EXTENT_MM, TEX_RES_MM)
     rng_geo = np.random.default_rng([seed, 1])
@@ -151,7 +152,7 @@ def make_scene(seed: int) -> TissueScene:
     wet_noise = blurred_noise(rng_geo, geo.size, 10 / geo.res) + 0.5 * blurred_noise(rng_geo, geo.size, 3 / geo.res)
     wet = np.clip(0.6 + 0.3 * wet_noise, 0.1, 1.0).astype(np.float32)
     rest_depth = float(76.0 + rng_geo.uniform(-3.0, 3.0))
-    level0 = make_albedo(rng_tex, tex.size, tex.res)
+    level0 = make_albedo(rng_tex, tex.size, tex.res, texture)
     levels = [level0]
     for _ in range(1, TEX_LEVELS):
         prev = cv2.GaussianBlur(levels[-1], (0, 0), 0.6)

@@ -41,13 +41,16 @@ def blinn_phong(albedo: np.ndarray, P: np.ndarray, n: np.ndarray, light: np.ndar
 class Sensor:
     """Turns linear radiance into a noisy 8-bit image of one camera."""
 
-    def __init__(self, rays: np.ndarray, exposure: float = 1.0, blur_px: float = 0.55):
+    def __init__(self, rays: np.ndarray, exposure: float = 1.0, blur_px: float = 0.55, vignetting: float = 3.0):
         cos_theta = 1.0 / np.linalg.norm(rays, axis=-1)  # rays have z = 1
-        self.vignette = (exposure * cos_theta ** 3.0).astype(np.float32)[..., None]
+        self.vignette = (exposure * cos_theta ** float(vignetting)).astype(np.float32)[..., None]
         self.blur_px = blur_px
 
-    def capture(self, radiance: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def capture(self, radiance: np.ndarray, rng: np.random.Generator, gain: float = 1.0) -> np.ndarray:
+        """The 8-bit image of linear ``radiance`` ``(H, W, 3)``, its exposure scaled by ``gain``."""
         img = radiance * self.vignette
+        if gain != 1.0:
+            img = img * np.float32(gain)
         if self.blur_px > 0:
             img = cv2.GaussianBlur(img, (0, 0), self.blur_px)
         img = np.clip(img, 0, 1) ** np.float32(1 / 2.2)

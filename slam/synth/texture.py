@@ -76,8 +76,23 @@ def _draw_vessels(rng, size: int, res: float, half: float, n_trees: int, w_range
     return canvas.astype(np.float32) / 255.0
 
 
-def make_albedo(rng: np.random.Generator, size: int, res: float) -> np.ndarray:
-    """The albedo texture: ``(size, size, 3)`` uint8 sRGB (RGB order), texel ``res`` mm."""
+def _sparse_patches(rng: np.random.Generator, size: int, mm: float, share: float) -> np.ndarray:
+    """A soft mask ``(size, size)`` in [0, 1] that is 1 over about ``share`` of the area, in
+    blobs some 15 mm wide (drawn after every other texture draw, so it changes none of them)."""
+    field = blurred_noise(rng, size, 15 * mm)
+    cut = float(np.quantile(field[::8, ::8], 1.0 - share))
+    return smoothstep(cut - 0.15, cut + 0.15, field).astype(np.float32)
+
+
+def make_albedo(rng: np.random.Generator, size: int, res: float, texture: float = 1.0) -> np.ndarray:
+    """The albedo texture: ``(size, size, 3)`` uint8 sRGB (RGB order), texel ``res`` mm.
+
+    ``texture`` in [0, 1] scales the contrast of the fine structure (grain, blush, capillaries,
+    deep vessels) and, below 1, keeps the superficial vessels only inside sparse patches that
+    cover ``0.2 + 0.8 * texture`` of the tissue: 0 is smooth tissue with a few thin vessels. The
+    random draws do not depend on ``texture``, so one seed gives the same vessels at every level.
+    """
+    t = float(texture)
     half = size * res / 2.0
     mm = 1.0 / res  # texels per mm
 
@@ -86,23 +101,23 @@ def make_albedo(rng: np.random.Generator, size: int, res: float) -> np.ndarray:
     mix = smoothstep(-1.2, 1.2, low)[..., None]
     col = TISSUE_PALE * (1 - mix) + TISSUE_RED * mix
     grain = fractal_noise(rng, size, [6 * mm, 2 * mm, 0.8 * mm, 0.3 * mm], [0.6, 0.8, 0.7, 0.5])
-    col *= (1.0 + 0.05 * grain)[..., None]
+    col *= (1.0 + 0.05 * t * grain)[..., None]
     # faint reddish mottling (capillary blush)
     blush = smoothstep(0.3, 1.8, fractal_noise(rng, size, [4 * mm, 1.5 * mm], [1.0, 0.6]))
-    col = col * (1 - 0.25 * blush[..., None]) + TISSUE_RED * 0.85 * (0.25 * blush[..., None])
+    col = col * (1 - 0.25 * t * blush[..., None]) + TISSUE_RED * 0.85 * (0.25 * t * blush[..., None])
 
     # deep vessels: wide, faint, bluish, blurred (sub-surface)
     deep = _draw_vessels(rng, size, res, half, n_trees=7, w_range=(1.0, 1.8), length_per_mm=60.0,
                          min_width=0.4)
     deep = cv2.GaussianBlur(deep, (0, 0), 0.35 * mm)
-    col = col * (1 - 0.35 * deep[..., None]) + VESSEL_DEEP * (0.35 * deep[..., None])
+    col = col * (1 - 0.35 * t * deep[..., None]) + VESSEL_DEEP * (0.35 * t * deep[..., None])
 
     # fat patches (yellowish, lobular), covering the deep vessels
     fat_field = fractal_noise(rng, size, [50 * mm, 20 * mm, 6 * mm], [1.0, 0.45, 0.15])
     fat = smoothstep(0.9, 1.5, fat_field)
     lob = blurred_noise(rng, size, 1.5 * mm)
     lob = smoothstep(-1.5, 1.5, lob)
-    fat_col = FAT[None, None, :] * (0.86 + 0.16 * lob)[..., None]
+    fat_col = FAT[None, None, :] * (0.86 + 0.16 * (t * lob + (1 - t) * 0.5))[..., None]
     col = col * (1 - fat[..., None]) + fat_col * fat[..., None]
 
     # superficial vessels: branching, dark red, sharp, from medium vessels down to capillaries
@@ -110,10 +125,12 @@ def make_albedo(rng: np.random.Generator, size: int, res: float) -> np.ndarray:
     cap = _draw_vessels(rng, size, res, half, n_trees=400, w_range=(0.1, 0.2), length_per_mm=22.0,
                         min_width=0.05, branch_rate=0.2)
     cap = cv2.GaussianBlur(cap, (0, 0), 0.06 * mm + 0.5)[..., None] * vis
-    col = col * (1 - 0.6 * cap) + CAPILLARY * (0.6 * cap)
+    col = col * (1 - 0.6 * t * cap) + CAPILLARY * (0.6 * t * cap)
     sup = _draw_vessels(rng, size, res, half, n_trees=40, w_range=(0.25, 0.7), length_per_mm=60.0,
                         min_width=0.12)
     sup = cv2.GaussianBlur(sup, (0, 0), 0.06 * mm + 0.5)[..., None] * vis
+    if t < 1.0:
+        sup = sup * _sparse_patches(rng, size, mm, 0.2 + 0.8 * t)[..., None]
     col = col * (1 - 0.85 * sup) + VESSEL_SUPERFICIAL * (0.85 * sup)
 
     return np.clip(col * 255.0 + 0.5, 0, 255).astype(np.uint8)
