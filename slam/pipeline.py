@@ -24,7 +24,9 @@ from slam.datasets.base import StereoFrame
 from slam.errors import DataError, SlamError
 from slam.frame_view import frame_view
 from slam.prefetch import Prefetcher
-from slam.tracker import Tracker
+from slam.health import health_summary, nees, relative_error
+from slam.tracker import FrameResult, Tracker
+from slam.tracking_csv import TrackingCsvWriter
 from slam.tum import TumStreamWriter
 from vo.odometry import View
 
@@ -43,6 +45,8 @@ class FrameRecord:
     reference: str = ""  # previous_frame | keyframe (an earlier frame, tracking.keyframe_gap) | model | first
     iterations: int = 0
     cost: float = float("nan")
+    health: dict = field(default_factory=dict)   # slam.health.FIGURES of the frame
+    reference_position: Optional[int] = None      # the processed frame it was tracked against
 
 
 @dataclass
@@ -88,6 +92,7 @@ class Pipeline:
         self.timings: dict[str, list[float]] = {}
         self._ahead_view: Optional[View] = None   # the read-ahead thread's last view (tracking.read_ahead)
         self._waiting_for = -1      # the frame the main thread waits for (-1: none)
+        self._rect_poses: list[np.ndarray] = []     # estimated rectified T_wc per processed frame
 
     @property
     def odometry(self):
@@ -120,6 +125,7 @@ class Pipeline:
         result = RunResult(out_dir=self.out_dir)
         n = len(self.dataset)
         writer = TumStreamWriter(self.out_dir / "trajectory.txt")
+        health_csv = TrackingCsvWriter(self.out_dir / "tracking.csv")
         bar = tqdm(total=n, unit="frame", disable=not progress, dynamic_ncols=True, leave=False)
         self._ahead_view = None
         reader = Prefetcher(self._read_view, n)
@@ -133,6 +139,8 @@ class Pipeline:
                 if record.failed:
                     log.warning("frame %d: %s (pose carried over)", record.index, record.reason)
                 writer.write(record.timestamp, record.pose)
+                health_csv.write(record.index, record.timestamp, record.failed, record.reason, record.reference,
+                                 self._reference_frame(record), record.health)
                 result.records.append(record)
                 self._time("total", (time.perf_counter() - t_frame) * 1000.0)
                 bar.update(1)
@@ -145,6 +153,7 @@ class Pipeline:
             reader.close()
             bar.close()
             writer.close()
+            health_csv.close()
             torch.set_num_threads(threads_before)
         wall = time.perf_counter() - t_start
         self._finish(result, wall)
@@ -206,6 +215,7 @@ class Pipeline:
                 self._waiting_for = -1
             self._time("read", (time.perf_counter() - t0) * 1000.0)
         except DataError as err:
+            self._rect_poses.append(self.tracker.pose)
             return FrameRecord(index, stamp, self.tracker.pose @ self.R1, True, f"unreadable frame: {err}")
         if view is None:
             timings = {}
@@ -218,11 +228,31 @@ class Pipeline:
             self._time(stage, ms)
         track = result.track
         pose = frame.gt_pose if self.tracker.known_poses else result.pose @ self.R1
+        self._rect_poses.append(np.asarray(result.pose))
         record = FrameRecord(index, stamp, pose, result.failed, result.reason, result.reference,
                              track.iterations if track is not None else 0,
-                             track.cost if track is not None else float("nan"))
+                             track.cost if track is not None else float("nan"), dict(result.health),
+                             result.reference_position)
+        record.health["nees"] = self._nees(k, result)
         self._log(k, frame, view, track, result.pose, record)
         return record
+
+    def _nees(self, k: int, result: FrameResult) -> float:
+        """The NEES of frame ``k``'s motion from its reference frame against the ground truth's
+        (nan without a covariance or a ground-truth pose of both frames)."""
+        gt, ref = self.dataset.gt_poses, result.reference_position
+        if result.covariance is None or result.failed or gt is None or ref is None or ref < 0:
+            return float("nan")
+        if not (np.all(np.isfinite(gt[k])) and np.all(np.isfinite(gt[ref]))):
+            return float("nan")
+        truth = np.linalg.inv(gt[ref] @ self.R1.T) @ (gt[k] @ self.R1.T)
+        estimate = np.linalg.inv(self._rect_poses[ref]) @ self._rect_poses[k]
+        return nees(relative_error(estimate, truth), result.covariance)
+
+    def _reference_frame(self, record: FrameRecord) -> Optional[int]:
+        """The dataset index of the frame ``record`` was tracked against, if any."""
+        ref = record.reference_position
+        return None if ref is None or ref < 0 else int(self.dataset.indices[ref])
 
     def _log(self, k, frame, view, track, pose_rect, record) -> None:
         if self.logger is not None:
@@ -247,6 +277,7 @@ class Pipeline:
             "mode": self.config.tracking.mode,
             "frame_rate": self.frame_rate,
             "model_fallbacks": self.tracker.fallbacks,
+            "health": health_summary([r.health for r in records]),
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         }
         if result.interrupted:

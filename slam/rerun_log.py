@@ -358,6 +358,9 @@ class RerunLogger:
         if gt is not None:
             rec.log("metrics/translation_error_mm", rr.Scalars(float(np.linalg.norm(pose[:3, 3] - gt[:3, 3]))))
         rec.log("metrics/failed", rr.Scalars(1.0 if record.failed else 0.0))
+        for name, value in (getattr(record, "health", None) or {}).items():   # slam.health.FIGURES
+            if value is not None and np.isfinite(float(value)):
+                rec.log(f"health/{name}", rr.Scalars(float(value)))
 
         self._last_k = int(k)
         self._last_time = now

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from slam.config import SlamConfig
+from slam.health import HealthMonitor
 from vo.camera import StereoCamera
 from vo.odometry import StereoOdometry, TrackResult, View, moved_less_than
 
@@ -40,10 +41,13 @@ class FrameResult:
             ``model`` (the map's view) or ``groundtruth`` (``tracking.poses: groundtruth``).
         track: the VO core's result (flow, weight maps, solver figures), None without a solve.
         keyframe: the sequence position of the keyframe the frame was tracked against, else None.
-        health: per-frame figures of how well the frame was tracked (``valid_pixels``,
-            ``iterations``, ``cost``; ``model_coverage`` against the map).
-        covariance: ``(6, 6)`` pose covariance (mm and rad, translation first), where one is
-            estimated; None otherwise.
+        reference_position: the sequence position of the frame at whose pose the reference sits
+            (the keyframe, or the last tracked frame for the previous frame and the model view).
+        health: per-frame figures of how well the frame was tracked (``slam.health.FIGURES``:
+            supported pixels, residuals against their running medians, the covariance's
+            spread; ``model_coverage`` against the map).
+        covariance: ``(6, 6)`` covariance of the relative pose to the reference (mm and rad,
+            translation first, left perturbation), where one is estimated; None otherwise.
         timings: ``(stage, ms)`` of the work done for the frame, in order (a stage may repeat).
     """
 
@@ -53,6 +57,7 @@ class FrameResult:
     reference: str = ""
     track: Optional[TrackResult] = None
     keyframe: Optional[int] = None
+    reference_position: Optional[int] = None
     health: dict = field(default_factory=dict)
     covariance: Optional[np.ndarray] = None
     timings: list = field(default_factory=list)
@@ -176,6 +181,8 @@ class Tracker:
         self.pose = np.asarray(initial_pose, dtype=np.float64)
         self.last_view: Optional[View] = None
         self.keyframe: Optional[Keyframe] = None
+        self.position = -1          # the last tracked frame's sequence position
+        self.health = HealthMonitor(config.health)
         self.velocity = np.eye(4)   # the last tracked relative motion: solver.init=constant_velocity's start
         self.fallbacks = 0          # frame2model frames tracked against the previous frame
 
@@ -198,16 +205,17 @@ class Tracker:
         if self.known_poses:
             return self._map_at_known_pose(position, view, gt_pose)
         if self.last_view is None:
-            result = FrameResult(self.pose, reference="first", health=self._health(None))
+            result = FrameResult(self.pose, reference="first")
             self._fuse(view, None, self.pose, position, result)
             self._advance(position, view, self.pose, result)
             return result
         result = FrameResult(self.pose)
         # the reference: the keyframe, the model view, or the previous frame
         ref, ref_pose, result.reference = self._reference(result)
+        result.reference_position = self.position
         init = self.velocity if self.config.solver.init == "constant_velocity" else None
         if result.reference == "keyframe":
-            result.keyframe = self.keyframe.position
+            result.keyframe = result.reference_position = self.keyframe.position
             if init is not None:        # the motion since the keyframe, continued by one frame's
                 init = np.linalg.inv(ref_pose) @ self.pose @ self.velocity
         # the depth is filtered between real frames while the camera is still
@@ -220,7 +228,7 @@ class Tracker:
         result.track = track
         if track.failed:
             result.failed, result.reason = True, track.reason
-            result.health.update(self._health(track))
+            self._assess(result, track)
             self.keyframe = None    # the next frame goes against the last tracked one, and becomes the keyframe
             return result
         pose = ref_pose @ track.relative
@@ -228,7 +236,7 @@ class Tracker:
             pose, track = self._refine(view, pose, track, result)
             result.track = track
         result.pose = pose
-        result.health.update(self._health(track))
+        self._assess(result, track)
         self.velocity = np.linalg.inv(self.pose) @ pose
         self._fuse(view, track.w3d, pose, position, result)
         self._advance(position, view, pose, result)
@@ -240,17 +248,17 @@ class Tracker:
         if self.keyframe_gap > 1 and (self.keyframe is None or position - self.keyframe.position >= self.keyframe_gap
                                       or result.reference == "first" or not self._still_for_keyframe()):
             self.keyframe = Keyframe(position, view, pose)   # (a moving camera: the next frame goes against this one)
-        self.pose, self.last_view = pose, view
+        self.pose, self.last_view, self.position = pose, view, position
 
     def _still_for_keyframe(self) -> bool:
         """Whether the last tracked motion leaves the camera still enough to keep the keyframe
         (``tracking.keyframe_still_mm``; always with 0)."""
         return moved_less_than(self.velocity, self.config.tracking.keyframe_still_mm)
 
-    def _health(self, track: Optional[TrackResult]) -> dict:
-        if track is None:
-            return {}
-        return {"valid_pixels": track.valid_pixels, "iterations": track.iterations, "cost": track.cost}
+    def _assess(self, result: FrameResult, track: TrackResult) -> None:
+        """The frame's health figures and pose covariance (:class:`slam.health.HealthMonitor`)."""
+        figures, result.covariance = self.health.assess(track, against_model=result.reference == "model")
+        result.health.update(figures)
 
     def _reference(self, result: FrameResult) -> tuple[View, np.ndarray, str]:
         """The reference view of the next frame, the pose it sits at and its kind: the keyframe
@@ -337,5 +345,5 @@ class Tracker:
             _, w3d = self.odometry.weight_maps(view, self.last_view, corr, problem)
             result.timings += [("flow", (t1 - t0) * 1000.0), ("weights", (time.perf_counter() - t1) * 1000.0)]
         self._fuse(view, w3d, pose, position, result)
-        self.pose, self.last_view = pose, view
+        self.pose, self.last_view, self.position = pose, view, position
         return result

@@ -100,7 +100,8 @@ def _run_logger(path: Path, gt: bool = True, map_every: int = 2) -> dict:
         est.append(pose)
         record = FrameRecord(index=10 + k, timestamp=0.1 * k, pose=pose, failed=failed,
                              reason="diverged" if failed else "", reference="first" if k == 0 else "previous_frame",
-                             iterations=0 if k == 0 else 7, cost=float("nan") if k == 0 else 0.25)
+                             iterations=0 if k == 0 else 7, cost=float("nan") if k == 0 else 0.25,
+                             health={} if k == 0 else {"support": 0.9, "nees": float("nan") if k == 1 else 5.0})
         frame = SimpleNamespace(index=10 + k, timestamp=0.1 * k, left=None, right=None, mask=None)
         logger.log_frame(k, frame, _view(gen), track, record, fmap, camera, pose)
     est = np.stack(est)
@@ -194,6 +195,9 @@ def test_one_entry_per_processed_frame(recording):
     assert frames[("/metrics/translation_error_mm", "Scalars:scalars")] == every
     assert frames[("/metrics/solver_cost", "Scalars:scalars")] == tracked  # NaN cost of frame 0 skipped
     assert frames[("/metrics/fps", "Scalars:scalars")] == tracked
+    # the health figures as time series, a frame's nan left out
+    assert frames[("/health/support", "Scalars:scalars")] == tracked
+    assert frames[("/health/nees", "Scalars:scalars")] == tracked[1:]
     # map every 2 frames (0, 2, 4) and the final map (at the last frame)
     assert frames[(MAP, "Points3D:positions")] == [0, 2, 4, 4]
     static = _static_components(path)

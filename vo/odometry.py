@@ -34,6 +34,7 @@ from vo.correspondence.dis import DisFlow, to_gray_u8
 from vo.depth import (depth_from_parallax, filter_depth_along_flow, flow_consistency, parallax_from_depth,
                       vertical_parallax_ok)
 from vo.geometry import backproject, flow_grid, lands_inside, pixel_grid, sample_by_flow, sample_valid_by_flow
+from vo.health import PoseFit, pose_fit
 from vo.lie import rotation_angle_deg
 from vo.residuals import PoseProblem, residuals
 from vo.solver import SolverResult, solve_pose
@@ -143,6 +144,9 @@ class TrackResult:
         flow: ``(1, 2, H, W)`` temporal flow current -> reference.
         w2d, w3d: ``(1, 1, H, W)`` weight maps used.
         timings_ms: per-stage wall time.
+        fit: the residuals left at the optimum and the objective's curvature
+            (:class:`vo.health.PoseFit`: the pose covariance), None without a finite solution.
+        support: the share of the current view's valid pixels that carry a weight.
     """
 
     relative: np.ndarray
@@ -155,6 +159,8 @@ class TrackResult:
     w2d: torch.Tensor
     w3d: torch.Tensor
     timings_ms: dict
+    fit: PoseFit | None = None
+    support: float = float("nan")
 
 
 def image_tensor(rgb: np.ndarray, device: str | torch.device = "cpu") -> torch.Tensor:
@@ -325,15 +331,17 @@ class StereoOdometry:
         w2d, w3d = self.weight_maps(cur, ref, corr, problem)
         t2 = time.perf_counter()
         # 5. solve (eq. 4)
-        result, n_valid = self.solve(cur, problem, w2d, w3d, init, robust=not ref.from_model)
+        result, n_valid, fit = self.solve(cur, problem, w2d, w3d, init, robust=not ref.from_model)
         t3 = time.perf_counter()
         # 6. check
         relative, reason = self.check(result, n_valid)
         timings.update(flow=(t1 - t0) * 1000.0, weights=(t2 - t1) * 1000.0, solve=(t3 - t2) * 1000.0)
+        n_cur = int(cur.valid.sum())
         return TrackResult(relative=relative, failed=bool(reason), reason=reason,
                            iterations=0 if result is None else result.iterations,
                            cost=float("nan") if result is None else float(result.cost[0]),
-                           valid_pixels=n_valid, flow=corr.flow, w2d=w2d, w3d=w3d, timings_ms=timings)
+                           valid_pixels=n_valid, flow=corr.flow, w2d=w2d, w3d=w3d, timings_ms=timings,
+                           fit=None if reason else fit, support=n_valid / n_cur if n_cur else 0.0)
 
     def correspondences(self, cur: View, against: View) -> Correspondences:
         """Step 1: the temporal flow ``cur -> against`` (against the real view whose pixels
@@ -405,14 +413,16 @@ class StereoOdometry:
         return w2d, w3d
 
     def solve(self, cur: View, problem: ResidualProblem, w2d: torch.Tensor, w3d: torch.Tensor,
-              init: np.ndarray | None = None, robust: bool = True) -> tuple[SolverResult | None, int]:
+              init: np.ndarray | None = None, robust: bool = True
+              ) -> tuple[SolverResult | None, int, PoseFit | None]:
         """Step 5: ``p* = argmin sum w2D |e2D|^2 + w3D |e3D|^2`` (eq. 4) over at most
         ``solver.max_pixels`` of the weighted pixels, from ``init`` ``(4, 4)`` mm; with ``robust``
         and ``solver.robust_3d_mm`` one Cauchy-reweighted step on the 3D residual follows.
 
         Returns:
             the solver's result (None when fewer than ``solver.min_valid_pixels`` pixels carry a
-            weight) and the number of weighted pixels.
+            weight), the number of weighted pixels, and the optimum's fit to the problem it
+            solved (:func:`vo.health.pose_fit`; None without a finite optimum).
         """
         scfg = self.config.solver
         dmax = self.config.depth.max_depth_mm
@@ -423,7 +433,7 @@ class StereoOdometry:
                            K=self.K[None], s2=s2, s3=s3).compact()
         n_valid = int(prob.w2d.shape[1])
         if n_valid < scfg.min_valid_pixels:
-            return None, n_valid
+            return None, n_valid, None
         prob = prob.subsample(scfg.max_pixels)
         T0 = None
         if init is not None:
@@ -432,9 +442,10 @@ class StereoOdometry:
             T0 = T0[None]
         result = solve_pose(prob, scfg, T0)
         if robust and scfg.robust_3d_mm > 0 and bool(torch.isfinite(result.T).all()):
-            robust_prob = prob.with_weights(prob.w2d, prob.w3d * cauchy_weights_3d(prob, result.T, dmax, scfg.robust_3d_mm))
-            result = solve_pose(robust_prob, scfg, result.T)
-        return result, n_valid
+            prob = prob.with_weights(prob.w2d, prob.w3d * cauchy_weights_3d(prob, result.T, dmax, scfg.robust_3d_mm))
+            result = solve_pose(prob, scfg, result.T)
+        fit = pose_fit(prob, result.T, dmax) if bool(torch.isfinite(result.T).all()) else None
+        return result, n_valid, fit
 
     def check(self, result: SolverResult | None, n_valid: int) -> tuple[np.ndarray, str]:
         """Step 6: the relative pose ``(4, 4)`` mm and '' if it can be trusted, else the identity

@@ -129,7 +129,7 @@ def _solve_damped(H: torch.Tensor, g: torch.Tensor, lam: torch.Tensor) -> torch.
     return torch.linalg.solve(A, -g)
 
 
-def _kernels_for(prob: PoseProblem, kernel: str):
+def kernels_for(prob: PoseProblem, kernel: str):
     """The normal equations and the step's exponential: torch's (and kornia's), or with
     ``kernel`` compiled/auto for a CPU problem without gradients the compiled loop of
     ``vo.solver_kernels`` and the closed-form :func:`vo.lie.se3_exp_fast`."""
@@ -162,7 +162,7 @@ def solve_pose_lm(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor 
     T = torch.eye(4, dtype=dtype, device=device).repeat(B, 1, 1) if T_init is None else T_init.to(dtype).clone()
     lam = torch.full((B,), 1e-4 if damping else 0.0, dtype=torch.float64, device=device)
     converged = torch.zeros(B, dtype=torch.bool, device=device)
-    normal_equations, exp = _kernels_for(prob, tol.kernel)
+    normal_equations, exp = kernels_for(prob, tol.kernel)
     H, g, cost = normal_equations(T, prob)
     cost_prev = cost
     accepted_before = torch.ones(B, dtype=torch.bool, device=device)

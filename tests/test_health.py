@@ -1,0 +1,129 @@
+"""Tracking health: the pose fit's covariance, the running residual figures, tracking.csv."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from slam.config import HealthConfig
+from slam.health import HealthMonitor, health_summary, nees, relative_error
+from vo.config import SolverConfig
+from vo.health import PoseFit, pose_fit, weighted_median
+from vo.lie import se3_exp, se3_log
+from vo.odometry import TrackResult
+from vo.residuals import PoseProblem
+from vo.solver import solve_pose
+
+DMAX = 200.0
+
+
+def _problem(rng: np.random.Generator, T_true: torch.Tensor, sigma_mm: float, n: int = 3000) -> PoseProblem:
+    """3D residuals only: reference points = T_true X + Gaussian noise of sigma_mm per axis."""
+    X = np.stack([rng.uniform(-30, 30, n), rng.uniform(-25, 25, n), rng.uniform(50, 90, n)], 0) / DMAX
+    X = torch.from_numpy(X).float()[None]
+    Y = T_true[:, :3, :3] @ X + T_true[:, :3, 3:4]
+    ref = Y + torch.from_numpy(rng.normal(0, sigma_mm / DMAX, Y.shape)).float()
+    K = torch.tensor([[[300.0, 0, 160], [0, 300.0, 128], [0, 0, 1]]])
+    s2, s3 = PoseProblem.scales(256, 320)
+    target = torch.zeros(1, 2, n)
+    return PoseProblem(points_cur=X, target_px=target, points_ref=ref, w2d=torch.zeros(1, n), w3d=torch.ones(1, n),
+                       K=K, s2=s2, s3=s3)
+
+
+def test_the_textbook_covariance_matches_the_spread_of_solved_poses():
+    """Independent noise of known sigma: s = 1 must predict the poses' scatter (mm and rad)."""
+    rng = np.random.default_rng(0)
+    p_true = torch.tensor([[0.5 / DMAX, -0.3 / DMAX, 0.2 / DMAX, 0.01, -0.02, 0.005]], dtype=torch.float64)
+    T_true = se3_exp(p_true).float()
+    errors, covs = [], []
+    for _ in range(150):
+        prob = _problem(rng, T_true, sigma_mm=0.5)
+        result = solve_pose(prob, SolverConfig())
+        fit = pose_fit(prob, result.T, DMAX)
+        T_est_mm, T_true_mm = result.T[0].double().clone(), T_true[0].double().clone()
+        T_est_mm[:3, 3] *= DMAX
+        T_true_mm[:3, 3] *= DMAX
+        errors.append(relative_error(T_est_mm.numpy(), T_true_mm.numpy()))
+        covs.append(fit.covariance(1.0))
+    errors = np.array(errors)
+    predicted = np.mean(covs, axis=0)
+    ratio = errors.var(axis=0) / np.diag(predicted)
+    assert np.all((ratio > 0.6) & (ratio < 1.6)), ratio
+    mean_nees = np.mean([nees(e, c) for e, c in zip(errors, covs)])
+    assert 4.5 < mean_nees < 7.5
+
+
+def test_the_fit_reports_residuals_in_pixels_and_mm():
+    rng = np.random.default_rng(1)
+    T = torch.eye(4)[None]
+    prob = _problem(rng, T, sigma_mm=0.3)
+    fit = pose_fit(prob, T, DMAX)
+    # |N(0, 0.3^2 I_3)| has median 0.3 * sqrt(chi2_3 median = 2.366)
+    assert fit.residual_3d_mm == pytest.approx(0.3 * math.sqrt(2.366), rel=0.06)
+    assert math.isnan(fit.residual_2d_px)          # no 2D weights
+    assert fit.sigma2 > 0 and fit.hessian.shape == (6, 6)
+    assert np.allclose(fit.hessian, fit.hessian.T)
+
+
+def test_weighted_median():
+    v = torch.tensor([1.0, 2.0, 3.0, 100.0])
+    assert weighted_median(v, torch.tensor([1.0, 1.0, 1.0, 0.0])) == 2.0
+    assert weighted_median(v, torch.tensor([0.0, 0.0, 1.0, 5.0])) == 100.0
+    assert math.isnan(weighted_median(v, torch.zeros(4)))
+
+
+def _track(r2: float, r3: float, failed: bool = False) -> TrackResult:
+    fit = PoseFit(residual_2d_px=r2, residual_3d_mm=r3, hessian=np.eye(6) * 4.0, sigma2=2.0)
+    z = torch.zeros(1, 1, 2, 2)
+    return TrackResult(relative=np.eye(4), failed=failed, reason="x" if failed else "", iterations=3, cost=1.0,
+                       valid_pixels=900, flow=z, w2d=z, w3d=z, timings_ms={}, fit=fit, support=0.9)
+
+
+def test_residuals_are_compared_with_the_running_median_of_good_frames():
+    monitor = HealthMonitor(HealthConfig(covariance_scale_frame=3.0, covariance_scale_model=5.0))
+    first, cov = monitor.assess(_track(0.1, 0.2), against_model=False)
+    assert math.isnan(first["residual_2d_ratio"])
+    np.testing.assert_allclose(cov, np.eye(6) * 3.0 * 2.0 / 4.0)
+    for _ in range(5):
+        monitor.assess(_track(0.1, 0.2), against_model=False)
+    figures, cov = monitor.assess(_track(0.4, 0.2, failed=True), against_model=True)
+    assert figures["residual_2d_ratio"] == pytest.approx(4.0) and figures["residual_3d_ratio"] == pytest.approx(1.0)
+    np.testing.assert_allclose(cov, np.eye(6) * 5.0 * 2.0 / 4.0)
+    assert figures["sigma_t_mm"] == pytest.approx(math.sqrt(3 * 2.5))
+    # a failed frame does not enter the history
+    again, _ = monitor.assess(_track(0.1, 0.2), against_model=False)
+    assert again["residual_2d_ratio"] == pytest.approx(1.0)
+
+
+def test_relative_error_and_nees():
+    T = se3_exp(torch.tensor([[1.0, 0.0, 0.0, 0.0, 0.0, 0.1]], dtype=torch.float64))[0].numpy()
+    np.testing.assert_allclose(relative_error(T, T), 0.0, atol=1e-12)
+    e = relative_error(T, np.eye(4))
+    np.testing.assert_allclose(e, se3_log(torch.from_numpy(T)[None])[0].numpy())
+    assert nees(np.ones(6), np.eye(6) * 2.0) == pytest.approx(3.0)
+    summary = health_summary([{"nees": 4.0, "support": 0.5}, {"nees": 8.0, "support": 0.7}, {}])
+    assert summary["nees_mean"] == 6.0 and summary["nees_frames"] == 2 and summary["support_median"] == 0.6
+
+
+def test_a_run_writes_tracking_csv_and_its_summary(tmp_path):
+    from slam.config import load_config
+    from slam.runner import run_from_config
+    from slam.synth import generate
+    from slam.tracking_csv import COLUMNS, read_tracking_csv
+
+    data = generate(tmp_path / "seq", "rigid", frames=8, size=(96, 80), seed=9601)
+    cfg = load_config(None, ["tracking.mode=frame2model", "logging.progress=false", "threads=1"])
+    res = run_from_config(data, cfg, tmp_path / "run", print_summary=False)
+    rows = read_tracking_csv(tmp_path / "run" / "tracking.csv")
+    assert list(rows) == list(COLUMNS) and len(rows["frame"]) == 8
+    assert rows["reference"][0] == "first" and set(rows["reference"][1:]) <= {"model", "previous_frame"}
+    np.testing.assert_array_equal(rows["reference_frame"][1:], np.arange(7))
+    tracked = rows["failed"][1:] == 0
+    assert np.all(np.isfinite(rows["nees"][1:][tracked])) and np.all(rows["sigma_t_mm"][1:][tracked] > 0)
+    assert np.all((rows["support"][1:] > 0.5) & (rows["support"][1:] <= 1.0))
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["health"]["nees_frames"] == int(tracked.sum())
+    assert metrics["health"] == res.metrics["health"]
