@@ -22,7 +22,7 @@ from vo.odometry import TrackResult
 RUNNING_FRAMES = 25
 
 # the figures of tracking.csv, in order (nan where a frame has none)
-FIGURES = ("valid_pixels", "support", "iterations", "cost", "residual_2d_px", "residual_3d_mm",
+FIGURES = ("valid_pixels", "support", "iterations", "cost", "round_trip_px", "residual_2d_px", "residual_3d_mm",
            "residual_2d_ratio", "residual_3d_ratio", "model_coverage", "sigma_t_mm", "sigma_r_deg", "nees")
 
 
@@ -41,7 +41,7 @@ class HealthMonitor:
         if track is None:
             return {}, None
         figures = {"valid_pixels": track.valid_pixels, "iterations": track.iterations, "cost": track.cost,
-                   "support": track.support}
+                   "support": track.support, "round_trip_px": track.round_trip_px}
         fit = track.fit
         if fit is None:
             return figures, None

@@ -269,6 +269,7 @@ class Pipeline:
         done = len(records)
         est = np.stack([r.pose for r in records]) if records else np.zeros((0, 4, 4))
         metrics: dict = {
+            "data": str(self.dataset.path),
             "frames": done,
             "failed_frames": [r.index for r in records if r.failed],
             "failures": {str(r.index): r.reason for r in records if r.failed},

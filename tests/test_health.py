@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -108,6 +110,10 @@ def test_relative_error_and_nees():
     assert summary["nees_mean"] == 6.0 and summary["nees_frames"] == 2 and summary["support_median"] == 0.6
 
 
+def metrics_timing(run, stage: str) -> float:
+    return json.loads((run / "metrics.json").read_text())["timings_ms"][stage]
+
+
 def test_a_run_writes_tracking_csv_and_its_summary(tmp_path):
     from slam.config import load_config
     from slam.runner import run_from_config
@@ -124,6 +130,18 @@ def test_a_run_writes_tracking_csv_and_its_summary(tmp_path):
     tracked = rows["failed"][1:] == 0
     assert np.all(np.isfinite(rows["nees"][1:][tracked])) and np.all(rows["sigma_t_mm"][1:][tracked] > 0)
     assert np.all((rows["support"][1:] > 0.5) & (rows["support"][1:] <= 1.0))
+    assert np.all((rows["round_trip_px"][1:] >= 0) & (rows["round_trip_px"][1:] < 1.0))    # rich texture, small motion
+    assert metrics_timing(tmp_path / "run", "flow_back") > 0
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert metrics["health"]["nees_frames"] == int(tracked.sum())
     assert metrics["health"] == res.metrics["health"]
+    # tools/health_cues.py reads the run back: every tracked frame's relative error against the truth
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    from health_cues import auc, frame_errors
+
+    _, errors = frame_errors(tmp_path / "run")
+    assert np.isnan(errors[0]) and np.all(np.isfinite(errors[1:][tracked]))
+    # against the previous frame (the model view sits at its pose) they are the run's RPE-trans
+    assert np.mean(errors[1:]) == pytest.approx(metrics["rpe_trans_mm"], rel=0.02)
+    assert auc(np.array([0.1, 0.2, 0.9, 0.8]), np.array([False, False, True, True])) == 1.0
+    assert auc(np.array([0.9, 0.2, 0.1, 0.8]), np.array([False, False, True, True])) == 0.25

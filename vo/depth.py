@@ -58,8 +58,14 @@ def flow_consistency(forward: torch.Tensor, backward: torch.Tensor, threshold_px
     Returns:
         ``(B, 1, H, W)`` bool: ``|F_ab(x) + F_ba(x + F_ab(x))| < threshold``.
     """
+    return round_trip_error(forward, backward) < threshold_px
+
+
+def round_trip_error(forward: torch.Tensor, backward: torch.Tensor) -> torch.Tensor:
+    """``(B, 1, H, W)`` ``|F_ab(x) + F_ba(x + F_ab(x))|`` (pixels) of ``(B, 2, H, W)`` flows
+    ``forward`` (a -> b) and ``backward`` (b -> a)."""
     round_trip = forward + sample_by_flow(backward, forward)
-    return round_trip.norm(dim=1, keepdim=True) < threshold_px
+    return round_trip.norm(dim=1, keepdim=True)
 
 
 def vertical_parallax_ok(parallax: torch.Tensor, max_px: float) -> torch.Tensor:

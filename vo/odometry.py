@@ -32,9 +32,9 @@ from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsCo
 from vo.correspondence import make_flow_estimators
 from vo.correspondence.dis import DisFlow, to_gray_u8
 from vo.depth import (depth_from_parallax, filter_depth_along_flow, flow_consistency, parallax_from_depth,
-                      vertical_parallax_ok)
+                      round_trip_error, vertical_parallax_ok)
 from vo.geometry import backproject, flow_grid, lands_inside, pixel_grid, sample_by_flow, sample_valid_by_flow
-from vo.health import PoseFit, pose_fit
+from vo.health import PoseFit, pose_fit, weighted_median
 from vo.lie import rotation_angle_deg
 from vo.residuals import PoseProblem, residuals
 from vo.solver import SolverResult, solve_pose
@@ -106,10 +106,15 @@ class Correspondences(NamedTuple):
         flow: ``(1, 2, H, W)`` pixels, current -> other.
         ok: ``(1, 1, H, W)`` bool flows that passed the forward-backward check
             (``correspondence.fb_check_px``), or None (no check ran).
+        round_trip: ``(1, 1, H, W)`` forward-backward disagreement ``|F(x) + B(x + F(x))|``
+            (pixels) with ``B`` the flow back, or None (not computed): a tracking health figure.
+        back_ms: the time the flow back and the round trip took (ms).
     """
 
     flow: torch.Tensor
     ok: torch.Tensor | None
+    round_trip: torch.Tensor | None = None
+    back_ms: float = 0.0
 
 
 class ResidualProblem(NamedTuple):
@@ -147,6 +152,8 @@ class TrackResult:
         fit: the residuals left at the optimum and the objective's curvature
             (:class:`vo.health.PoseFit`: the pose covariance), None without a finite solution.
         support: the share of the current view's valid pixels that carry a weight.
+        round_trip_px: the w2D-weighted median forward-backward disagreement of the temporal
+            flow (pixels; nan where it was not computed).
     """
 
     relative: np.ndarray
@@ -161,6 +168,7 @@ class TrackResult:
     timings_ms: dict
     fit: PoseFit | None = None
     support: float = float("nan")
+    round_trip_px: float = float("nan")
 
 
 def image_tensor(rgb: np.ndarray, device: str | torch.device = "cpu") -> torch.Tensor:
@@ -321,7 +329,9 @@ class StereoOdometry:
         filter_corr = None
         if filter_against is not None and filter_against is not ref:
             filter_corr = self.correspondences(cur, filter_against)
+        ahead = cur.flow_ahead[1] if cur.flow_ahead is not None else None
         corr = self.correspondences(cur, ref)
+        back_ms = 0.0 if corr is ahead else corr.back_ms     # a flow ahead was timed in its thread
         cur.flow_ahead = None
         # 2. depth
         self.filter_depth(cur, filter_against, corr if filter_corr is None else filter_corr)
@@ -335,13 +345,16 @@ class StereoOdometry:
         t3 = time.perf_counter()
         # 6. check
         relative, reason = self.check(result, n_valid)
-        timings.update(flow=(t1 - t0) * 1000.0, weights=(t2 - t1) * 1000.0, solve=(t3 - t2) * 1000.0)
+        timings.update(flow=(t1 - t0) * 1000.0 - back_ms, flow_back=back_ms, weights=(t2 - t1) * 1000.0,
+                       solve=(t3 - t2) * 1000.0)
         n_cur = int(cur.valid.sum())
+        fb = float("nan") if corr.round_trip is None else weighted_median(corr.round_trip.flatten(), w2d.flatten())
         return TrackResult(relative=relative, failed=bool(reason), reason=reason,
                            iterations=0 if result is None else result.iterations,
                            cost=float("nan") if result is None else float(result.cost[0]),
                            valid_pixels=n_valid, flow=corr.flow, w2d=w2d, w3d=w3d, timings_ms=timings,
-                           fit=None if reason else fit, support=n_valid / n_cur if n_cur else 0.0)
+                           fit=None if reason else fit, support=n_valid / n_cur if n_cur else 0.0,
+                           round_trip_px=fb)
 
     def correspondences(self, cur: View, against: View) -> Correspondences:
         """Step 1: the temporal flow ``cur -> against`` (against the real view whose pixels
@@ -481,15 +494,17 @@ class StereoOdometry:
         return view.flow_input
 
     def _pair_flow(self, estimator, cur: View, against: View) -> Correspondences:
-        """The temporal flow ``cur -> against`` and, with ``correspondence.fb_check_px``, the
-        ``(1, 1, H, W)`` bool mask of flows that passed the forward-backward check (else None)."""
+        """The temporal flow ``cur -> against``, the flow back and their round-trip disagreement
+        (a health figure) and, with ``correspondence.fb_check_px``, the ``(1, 1, H, W)`` bool
+        mask of flows that passed the forward-backward check (else None)."""
         cur_img, cur_gray = self._flow_input(cur, against=against)
         flow = self._flow(estimator, cur_img, cur_gray, against.image, against.gray)
-        fb_ok = None
-        if self.config.correspondence.fb_check_px > 0:
-            back = self._flow(estimator, against.image, against.gray, cur_img, cur_gray)
-            fb_ok = flow_consistency(flow, back, self.config.correspondence.fb_check_px)
-        return Correspondences(flow, fb_ok)
+        t0 = time.perf_counter()
+        back = self._flow(estimator, against.image, against.gray, cur_img, cur_gray)
+        round_trip = round_trip_error(flow, back)
+        fb_px = self.config.correspondence.fb_check_px
+        return Correspondences(flow, round_trip < fb_px if fb_px > 0 else None, round_trip,
+                               (time.perf_counter() - t0) * 1000.0)
 
     def can_flow_ahead(self) -> bool:
         """Whether :meth:`flow_ahead` can run in another thread (a classical backend: a second
