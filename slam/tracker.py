@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from slam.config import SlamConfig
+from slam.geometric_check import point_to_plane_check
 from slam.health import HealthMonitor
 from vo.camera import StereoCamera
 from vo.odometry import StereoOdometry, TrackResult, View, moved_less_than
@@ -237,6 +238,8 @@ class Tracker:
             result.track = track
         result.pose = pose
         self._assess(result, track)
+        if result.reference == "model":
+            self._verify_geometry(view, ref, np.linalg.inv(ref_pose) @ pose, result)
         self.velocity = np.linalg.inv(self.pose) @ pose
         self._fuse(view, track.w3d, pose, position, result)
         self._advance(position, view, pose, result)
@@ -254,6 +257,16 @@ class Tracker:
         """Whether the last tracked motion leaves the camera still enough to keep the keyframe
         (``tracking.keyframe_still_mm``; always with 0)."""
         return moved_less_than(self.velocity, self.config.tracking.keyframe_still_mm)
+
+    def _verify_geometry(self, view: View, ref: View, relative: np.ndarray, result: FrameResult) -> None:
+        """How well the frame's depth at the tracked ``relative`` pose lies on the model view's
+        surface (:func:`slam.geometric_check.point_to_plane_check`): health figures
+        ``plane_residual_mm`` and ``plane_cost_share``."""
+        t0 = time.perf_counter()
+        check = point_to_plane_check(view.depth, view.valid, ref.depth, ref.valid, self.odometry.K, relative)
+        result.time("verify", t0)
+        if check is not None:
+            result.health.update(plane_residual_mm=check.residual_mm, plane_cost_share=check.cost_share)
 
     def _assess(self, result: FrameResult, track: TrackResult) -> None:
         """The frame's health figures and pose covariance (:class:`slam.health.HealthMonitor`)."""

@@ -132,6 +132,9 @@ def test_a_run_writes_tracking_csv_and_its_summary(tmp_path):
     assert np.all((rows["support"][1:] > 0.5) & (rows["support"][1:] <= 1.0))
     assert np.all((rows["round_trip_px"][1:] >= 0) & (rows["round_trip_px"][1:] < 1.0))    # rich texture, small motion
     assert metrics_timing(tmp_path / "run", "flow_back") > 0
+    on_model = rows["reference"] == "model"
+    assert on_model.any() and np.all(np.isfinite(rows["plane_residual_mm"][on_model]))
+    assert np.all((rows["plane_cost_share"][on_model] >= 0) & (rows["plane_cost_share"][on_model] <= 1))
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert metrics["health"]["nees_frames"] == int(tracked.sum())
     assert metrics["health"] == res.metrics["health"]
@@ -145,3 +148,29 @@ def test_a_run_writes_tracking_csv_and_its_summary(tmp_path):
     assert np.mean(errors[1:]) == pytest.approx(metrics["rpe_trans_mm"], rel=0.02)
     assert auc(np.array([0.1, 0.2, 0.9, 0.8]), np.array([False, False, True, True])) == 1.0
     assert auc(np.array([0.9, 0.2, 0.1, 0.8]), np.array([False, False, True, True])) == 0.25
+
+
+def _bowl(H: int = 96, W: int = 128, f: float = 120.0):
+    """Depth of a curved surface (a bowl 60 mm away) seen by a pinhole camera, and its K."""
+    K = torch.tensor([[f, 0.0, W / 2], [0.0, f, H / 2], [0.0, 0.0, 1.0]])
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    x, y = (u - W / 2) / f, (v - H / 2) / f
+    depth = 60.0 + 40.0 * (x ** 2 + y ** 2)
+    return depth[None, None], torch.ones(1, 1, H, W, dtype=torch.bool), K
+
+
+def test_the_point_to_plane_check_sees_a_pose_off_the_surface():
+    from slam.geometric_check import point_to_plane_check
+
+    depth, valid, K = _bowl()
+    exact = point_to_plane_check(depth, valid, depth, valid, K, np.eye(4))
+    assert exact.residual_mm < 1e-3 and exact.cost_share < 1e-3
+    off = np.eye(4)
+    off[2, 3] = 0.5                      # 0.5 mm along the view: the surface's normal direction
+    moved = point_to_plane_check(depth, valid, depth, valid, K, off)
+    assert 0.3 < moved.residual_mm < 0.55
+    assert moved.cost_share > 0.9        # one rigid correction explains it
+    noise = torch.from_numpy(np.random.default_rng(0).normal(0, 0.2, depth.shape)).float()
+    noisy = point_to_plane_check(depth + noise, valid, depth, valid, K, np.eye(4))
+    assert noisy.cost_share < 0.05       # noise is not a pose error
+    assert point_to_plane_check(depth, valid & False, depth, valid, K, np.eye(4)) is None
