@@ -197,15 +197,15 @@ def test_masked_pixels_are_inpainted_for_the_flow_against_a_model_view(synth_dir
         ref_real = odo.make_view(ref_rgb, ref_rgb, None, gt_depth=np.full((H, W), 60.0))
         ref = odo.view_from_render(ref_real.image[0], ref_real.depth[0, 0], torch.ones(H, W, dtype=torch.bool))
         assert np.array_equal(cur.masked, blob)
-        flow, _ = odo.correspondences(cur, ref)
+        flow = odo.correspondences(cur, ref).flow
         if radius > 0:      # inpainted once per frame (its refinement passes reuse it)
             assert cur.flow_input is not None and odo._flow_input(cur, ref) is cur.flow_input
         near = torch.from_numpy(~blob & (np.abs(yy - 62) < 25) & (np.abs(xx - 82) < 30))
         errors[radius] = float((flow[0, 0] - shift).abs()[near].mean())
         if radius > 0:      # a real reference: the frame's own pixels, as before
-            flow_real, _ = odo.correspondences(cur, ref_real)
+            flow_real = odo.correspondences(cur, ref_real).flow
             cfg0 = load_config(None, ["weights.mode=constant", "correspondence.inpaint_px=0"])
-            flow_plain, _ = StereoOdometry(ds.camera, cfg0.vo()).correspondences(cur, ref_real)
+            flow_plain = StereoOdometry(ds.camera, cfg0.vo()).correspondences(cur, ref_real).flow
             assert torch.equal(flow_real, flow_plain)
     assert errors[3.0] < 0.5 * errors[0.0], errors
 
