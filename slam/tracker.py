@@ -351,7 +351,7 @@ class Tracker:
         w3d = None
         if self.last_view is not None and self.learned_fusion_weight:
             t0 = time.perf_counter()
-            corr = self.odometry.correspondences(view, self.last_view)
+            corr = self.odometry.correspondences(view, self.last_view, round_trip=False)
             view.flow_ahead = None
             t1 = time.perf_counter()
             problem = self.odometry.residual_problem(view, self.last_view, corr)

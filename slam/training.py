@@ -361,7 +361,7 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
                 for n in range(m + 1, k + 1):
                     v = frame_view(odo, dataset.frame(n), path)
                     if prev is not None:
-                        odo.filter_depth(v, prev, odo.correspondences(v, prev))
+                        odo.filter_depth(v, prev, odo.correspondences(v, prev, round_trip=False))
                     views[n] = prev = v
                 last_filtered[:] = [k, prev]
             else:
@@ -379,7 +379,7 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
         ref = model.view_at(i, view) if model is not None else view(i)
         if ref is None:
             continue
-        corr = odo.correspondences(cur, ref)    # as tracking computes them
+        corr = odo.correspondences(cur, ref, round_trip=False)    # as tracking computes them
         target, valid, valid3, points_ref = odo.residual_problem(cur, ref, corr)
         _, x3 = network_inputs(WeightInputs(cur.image, cur.depth / dmax, corr.flow, cur.parallax,
                                             ref.image, ref.depth / dmax, ref.parallax, valid),

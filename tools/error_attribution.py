@@ -63,6 +63,7 @@ def attribute_sequence(data: Path, step: int, overrides: list[str]) -> dict:
     """Per-pair errors of every variant on one sequence (see the module doc)."""
     from slam.config import load_config
     from slam.datasets import open_dataset
+    from vo.health import weighted_median
     from vo.odometry import Correspondences, StereoOdometry
 
     cfg = load_config(None, ["logging.progress=false", *overrides])
@@ -95,12 +96,10 @@ def attribute_sequence(data: Path, step: int, overrides: list[str]) -> dict:
                 errors[(depth, flow, weights)].append(np.nan if res.failed else pose_error_mm(res.relative, T_gt))
                 if (depth, flow, weights) == ("stereo", "dis", "learned"):
                     dis_failed += int(res.failed)
-                    epe = (res.flow[0] - flow_x[0]).norm(dim=0).numpy()
-                    w = res.w2d[0, 0].numpy() * seen
-                    if w.sum() > 0:
-                        order = np.argsort(epe.ravel())
-                        cw = np.cumsum(w.ravel()[order])
-                        epe_median.append(float(epe.ravel()[order][np.searchsorted(cw, 0.5 * cw[-1])]))
+                    epe = (res.flow[0] - flow_x[0]).norm(dim=0)
+                    w = res.w2d[0, 0] * seen_t[0, 0]
+                    if float(w.sum()) > 0:
+                        epe_median.append(weighted_median(epe.flatten(), w.flatten()))
                         epe_over_1px.append(float((w * (epe > 1.0)).sum() / w.sum()))
         prev = (f, views)
     return {"errors": {"/".join(v): e for v, e in errors.items()}, "epe_median_px": epe_median,

@@ -328,7 +328,7 @@ class StereoOdometry:
         # 1. correspondences (the flow to the filter's frame first: a flow kept ahead is taken once)
         filter_corr = None
         if filter_against is not None and filter_against is not ref:
-            filter_corr = self.correspondences(cur, filter_against)
+            filter_corr = self.correspondences(cur, filter_against, round_trip=False)
         ahead = cur.flow_ahead[1] if cur.flow_ahead is not None else None
         corr = self.correspondences(cur, ref)
         back_ms = 0.0 if corr is ahead else corr.back_ms     # a flow ahead was timed in its thread
@@ -356,15 +356,17 @@ class StereoOdometry:
                            fit=None if reason else fit, support=n_valid / n_cur if n_cur else 0.0,
                            round_trip_px=fb)
 
-    def correspondences(self, cur: View, against: View) -> Correspondences:
+    def correspondences(self, cur: View, against: View, round_trip: bool = True) -> Correspondences:
         """Step 1: the temporal flow ``cur -> against`` (against the real view whose pixels
         ``against`` shows, if any): the one :meth:`flow_ahead` kept on ``cur`` when it goes against
-        that view, else computed now."""
+        that view, else computed now; with ``round_trip`` its forward-backward disagreement (the
+        flow the pose is solved on: a health figure), else the flow back only for
+        ``correspondence.fb_check_px``."""
         against = against.image_of if against.image_of is not None else against
         ahead = cur.flow_ahead
         if ahead is not None and ahead[0]() is against:
             return ahead[1]
-        return self._pair_flow(self.temporal_flow, cur, against)
+        return self._pair_flow(self.temporal_flow, cur, against, round_trip)
 
     def filters_depth(self) -> bool:
         """Whether the depth filter is on (``depth.temporal_gain`` < 1)."""
@@ -493,17 +495,19 @@ class StereoOdometry:
                                              need_image=not isinstance(self.temporal_flow, DisFlow))
         return view.flow_input
 
-    def _pair_flow(self, estimator, cur: View, against: View) -> Correspondences:
-        """The temporal flow ``cur -> against``, the flow back and their round-trip disagreement
-        (a health figure) and, with ``correspondence.fb_check_px``, the ``(1, 1, H, W)`` bool
-        mask of flows that passed the forward-backward check (else None)."""
+    def _pair_flow(self, estimator, cur: View, against: View, round_trip: bool = True) -> Correspondences:
+        """The temporal flow ``cur -> against``; with ``round_trip`` or ``correspondence.fb_check_px``
+        the flow back and their round-trip disagreement (a health figure) and, with the check, the
+        ``(1, 1, H, W)`` bool mask of flows that passed it (else None)."""
         cur_img, cur_gray = self._flow_input(cur, against=against)
         flow = self._flow(estimator, cur_img, cur_gray, against.image, against.gray)
+        fb_px = self.config.correspondence.fb_check_px
+        if not round_trip and fb_px <= 0:
+            return Correspondences(flow, None)
         t0 = time.perf_counter()
         back = self._flow(estimator, against.image, against.gray, cur_img, cur_gray)
-        round_trip = round_trip_error(flow, back)
-        fb_px = self.config.correspondence.fb_check_px
-        return Correspondences(flow, round_trip < fb_px if fb_px > 0 else None, round_trip,
+        error = round_trip_error(flow, back)
+        return Correspondences(flow, error < fb_px if fb_px > 0 else None, error,
                                (time.perf_counter() - t0) * 1000.0)
 
     def can_flow_ahead(self) -> bool:
