@@ -102,9 +102,9 @@ def test_flow_ahead_gives_the_same_run_and_goes_to_the_idle_thread(synth_dir, tm
         pair_flow, slowed = odo._pair_flow, getattr(odo, "track" if slow == "track" else "make_view")
         calls = []
 
-        def spy_pairs(estimator, cur, against):
+        def spy_pairs(estimator, cur, against, *args):
             calls.append(threading.get_ident())
-            return pair_flow(estimator, cur, against)
+            return pair_flow(estimator, cur, against, *args)
 
         def spy_slow(*args, **kwargs):
             time.sleep(0.3)
