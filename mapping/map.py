@@ -107,6 +107,30 @@ class SurfelMap:
             self.last_timings = {**self.last_timings, **timer.times, "render_visible": float(nvis)}
         return view
 
+    def forget_view(self, K, T_wc, height: int, width: int) -> int:
+        """Remove the surfels a ``height x width`` view from ``T_wc`` sees: those that project
+        inside the image no further than ``free_space_mm`` behind the rendered surface (the
+        surface and what lies in front of it, the part of the map the view would fuse into), so
+        that the next fused frame rebuilds that part of the map. Returns how many were removed."""
+        view, _ = render(self.store, self.config, K, T_wc, int(height), int(width), False, False)
+        st = self.store
+        alive = st.alive[: st.n].nonzero().squeeze(1)
+        if alive.numel() == 0:
+            return 0
+        cam = Camera.make(K, T_wc, height, width, self.device)
+        p = cam.to_cam(st.pos[alive])
+        z = p[:, 2]
+        front = z > 1e-6
+        u = torch.round(cam.fx * p[:, 0] / z.clamp(min=1e-6) + cam.cx).long()
+        v = torch.round(cam.fy * p[:, 1] / z.clamp(min=1e-6) + cam.cy).long()
+        inside = front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        surface = torch.zeros_like(z)
+        surface[inside] = view.depth[v[inside], u[inside]]
+        seen = inside & (surface > 0) & (z <= surface + self.config.free_space_mm)
+        removed = st.kill(alive[seen])
+        st.maybe_compact()
+        return removed
+
     # ------------------------------------------------------------------ queries
     def __len__(self) -> int:
         return self.store.num_alive

@@ -47,6 +47,7 @@ class FrameRecord:
     cost: float = float("nan")
     health: dict = field(default_factory=dict)   # slam.health.FIGURES of the frame
     reference_position: Optional[int] = None      # the processed frame it was tracked against
+    flagged: bool = False   # frame2model's cross-check flagged it (slam.tracker.FrameResult.flagged)
 
 
 @dataclass
@@ -138,14 +139,17 @@ class Pipeline:
                 record = self._step(k, reader)
                 if record.failed:
                     log.warning("frame %d: %s (pose carried over)", record.index, record.reason)
+                elif record.flagged:
+                    log.warning("frame %d flagged: %s (not fused)", record.index, record.reason)
                 writer.write(record.timestamp, record.pose)
-                health_csv.write(record.index, record.timestamp, record.failed, record.reason, record.reference,
-                                 self._reference_frame(record), record.health)
+                health_csv.write(record.index, record.timestamp, record.failed, record.flagged, record.reason,
+                                 record.reference, self._reference_frame(record), record.health)
                 result.records.append(record)
                 self._time("total", (time.perf_counter() - t_frame) * 1000.0)
                 bar.update(1)
                 elapsed = time.perf_counter() - t_start
-                bar.set_postfix(fps=f"{(k + 1) / max(elapsed, 1e-9):.1f}", fail=sum(r.failed for r in result.records))
+                bar.set_postfix(fps=f"{(k + 1) / max(elapsed, 1e-9):.1f}", fail=sum(r.failed for r in result.records),
+                                flag=sum(r.flagged for r in result.records))
         except KeyboardInterrupt:
             result.interrupted = True
             log.warning("interrupted after %d frames; results so far are written", len(result.records))
@@ -232,7 +236,7 @@ class Pipeline:
         record = FrameRecord(index, stamp, pose, result.failed, result.reason, result.reference,
                              track.iterations if track is not None else 0,
                              track.cost if track is not None else float("nan"), dict(result.health),
-                             result.reference_position)
+                             result.reference_position, result.flagged)
         record.health["nees"] = self._nees(k, result)
         self._log(k, frame, view, track, result.pose, record)
         return record
@@ -273,11 +277,14 @@ class Pipeline:
             "frames": done,
             "failed_frames": [r.index for r in records if r.failed],
             "failures": {str(r.index): r.reason for r in records if r.failed},
+            "flagged_frames": [r.index for r in records if r.flagged],
+            "flags": {str(r.index): r.reason for r in records if r.flagged},
             "fps": done / wall_s if wall_s > 0 else 0.0,
             "timings_ms": {k: float(np.mean(v)) for k, v in self.timings.items()},
             "mode": self.config.tracking.mode,
             "frame_rate": self.frame_rate,
             "model_fallbacks": self.tracker.fallbacks,
+            "model_rebuilds": self.tracker.rebuilds,
             "health": health_summary([r.health for r in records]),
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         }

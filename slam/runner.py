@@ -42,7 +42,8 @@ def run_from_config(data: str | Path, config: SlamConfig, out: str | Path | None
 def summary_text(result: RunResult) -> str:
     m = result.metrics
     lines = [f"{'interrupted after' if result.interrupted else 'processed'} {m['frames']} frames "
-             f"({m.get('mode')}), {len(m['failed_frames'])} failed, {m['fps']:.1f} fps"]
+             f"({m.get('mode')}), {len(m['failed_frames'])} failed, {len(m.get('flagged_frames', []))} flagged, "
+             f"{m['fps']:.1f} fps"]
     if "ate_rmse_mm" in m:
         lines.append(f"ATE-RMSE {m['ate_rmse_mm']:.3f} mm | RPE-trans {m['rpe_trans_mm']:.3f} ± {m['rpe_trans_std_mm']:.3f} mm"
                      f" | RPE-rot {m['rpe_rot_deg']:.4f} ± {m['rpe_rot_std_deg']:.4f} deg")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
+import weakref
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -21,11 +22,16 @@ import torch
 
 from slam.config import SlamConfig
 from slam.geometric_check import point_to_plane_check
+from slam.cross_check import CrossCheck, Estimate
 from slam.health import HealthMonitor
 from vo.camera import StereoCamera
 from vo.odometry import StereoOdometry, TrackResult, View, moved_less_than
 
 log = logging.getLogger("slam")
+
+# frame2model: frames flagged in a row after which the model around the view is rebuilt (at 25 fps
+# 0.4 s: a short disagreement is a frame's flow, a lasting one the model's own error)
+REBUILD_AFTER = 10
 
 
 @dataclass
@@ -36,6 +42,9 @@ class FrameResult:
         pose: ``(4, 4)`` ``T_wc`` of the rectified left camera, mm (a failed frame keeps the
             last good pose).
         failed: the frame's pose could not be trusted (``reason`` says why).
+        flagged: frame2model's cross-check (``health.cross_check``) found the model view's and
+            the last frame's estimates in disagreement, or the model view's estimate failed: the
+            frame reports the better-supported estimate and is not fused (``reason`` says why).
         reason: '' for a good frame.
         reference: what the frame was tracked against: ``first`` (the first frame),
             ``previous_frame``, ``keyframe`` (an earlier frame, ``tracking.keyframe_gap``),
@@ -54,6 +63,7 @@ class FrameResult:
 
     pose: np.ndarray
     failed: bool = False
+    flagged: bool = False
     reason: str = ""
     reference: str = ""
     track: Optional[TrackResult] = None
@@ -66,6 +76,15 @@ class FrameResult:
     def time(self, stage: str, since: float) -> None:
         """Record ``stage`` as the time elapsed since ``since`` (``time.perf_counter()``)."""
         self.timings.append((stage, (time.perf_counter() - since) * 1000.0))
+
+
+@dataclass
+class FrameEstimate:
+    """Frame2model's independent estimate of a frame: its tracking against the last frame and
+    the relative pose with its covariance (:class:`slam.cross_check.Estimate`)."""
+
+    track: TrackResult
+    estimate: Estimate
 
 
 @dataclass
@@ -186,15 +205,21 @@ class Tracker:
         self.health = HealthMonitor(config.health)
         self.velocity = np.eye(4)   # the last tracked relative motion: solver.init=constant_velocity's start
         self.fallbacks = 0          # frame2model frames tracked against the previous frame
+        self.flagged_in_row = 0     # frames flagged since the model view last agreed (REBUILD_AFTER)
+        self.rebuilds = 0           # times the model around the view was rebuilt (REBUILD_AFTER)
+        hc = config.health
+        self.cross_check = CrossCheck(hc.cross_check, hc.flag_mm) if self.frame2model and hc.cross_check > 0 else None
 
     # ------------------------------------------------------------------ what may run ahead
     def flows_against_previous_frame(self) -> bool:
         """Whether each frame's temporal flow goes against the frame before it (frame2frame;
-        frame2model with ``flow_reference: last_frame``; known poses with a learned w3D), so that
+        frame2model with ``flow_reference: last_frame`` or the cross-check; known poses with a
+        learned w3D), so that
         it can be computed ahead (:meth:`vo.odometry.StereoOdometry.flow_ahead`)."""
         if self.known_poses:
             return self.learned_fusion_weight
-        return not self.frame2model or self.config.tracking.flow_reference == "last_frame"
+        return (not self.frame2model or self.config.tracking.flow_reference == "last_frame"
+                or self.config.health.cross_check > 0)
 
     # ------------------------------------------------------------------ one frame
     def track(self, position: int, view: View, gt_pose: Optional[np.ndarray] = None) -> FrameResult:
@@ -224,26 +249,121 @@ class Tracker:
         if (result.reference != "model" and self.odometry.filters_depth()
                 and moved_less_than(self.velocity, self.config.depth.temporal_still_mm)):
             filter_against = self.last_view
+        estimate = None
+        if result.reference == "model" and self.cross_check is not None:
+            estimate = self._estimate_against_last_frame(view, init, result)   # (first: it takes the flow ahead)
         track = self.odometry.track(view, ref, init, filter_against)
         result.timings += list(track.timings_ms.items())
         result.track = track
-        if track.failed:
+        if track.failed and estimate is None:
             result.failed, result.reason = True, track.reason
             self._assess(result, track)
             self.keyframe = None    # the next frame goes against the last tracked one, and becomes the keyframe
             return result
-        pose = ref_pose @ track.relative
-        if result.reference == "model":
-            pose, track = self._refine(view, pose, track, result)
-            result.track = track
-        result.pose = pose
-        self._assess(result, track)
-        if result.reference == "model":
-            self._verify_geometry(view, ref, np.linalg.inv(ref_pose) @ pose, result)
+        if track.failed:            # the model view's estimate failed, the last frame's did not
+            self._assess(result, estimate.track)
+            pose = result.pose = self._keep_frame_estimate(estimate, result,
+                                                           f"the model view's estimate failed ({track.reason})")
+        else:
+            pose = ref_pose @ track.relative
+            if result.reference == "model":
+                pose, track = self._refine(view, pose, track, result)
+                result.track = track
+            result.pose = pose
+            self._assess(result, track)
+            if result.reference == "model":
+                self._verify_geometry(view, ref, np.linalg.inv(ref_pose) @ pose, result)
+            if estimate is not None:
+                pose = result.pose = self._cross_check(estimate, result)
+        if result.covariance is not None:       # the spread of the pose reported
+            sigma_t = float(np.sqrt(max(np.trace(result.covariance[:3, :3]), 0.0)))
+            result.health.update(sigma_t_mm=sigma_t, sigma_r_deg=float(np.degrees(np.sqrt(max(
+                np.trace(result.covariance[3:, 3:]), 0.0)))))
+            if not result.flagged and sigma_t > self.config.health.flag_mm:
+                self._flag(result, f"uncertain pose (sigma_t {sigma_t:.2f} mm)", model_disagrees=False)
+        if estimate is None and result.covariance is not None and self.cross_check is not None:
+            if result.reference == "model":
+                self.cross_check.tracked_against_model(result.covariance)
+            else:
+                self.cross_check.tracked_against_frame(result.covariance)
         self.velocity = np.linalg.inv(self.pose) @ pose
-        self._fuse(view, track.w3d, pose, position, result)
+        self._after_flags(view, pose, result)
+        if not result.flagged:
+            self._fuse(view, result.track.w3d, pose, position, result)
         self._advance(position, view, pose, result)
         return result
+
+    # ------------------------------------------------------------------ frame2model's cross-check
+    def _estimate_against_last_frame(self, view: View, init: Optional[np.ndarray],
+                                     result: FrameResult) -> Optional[FrameEstimate]:
+        """The frame tracked against the last frame with its own flow (computed ahead where it
+        can be), independent of the map; None where it failed or has no covariance. Timed as
+        ``cross_check`` (its flow, weights and solve)."""
+        t0 = time.perf_counter()
+        ahead = view.flow_ahead
+        if ahead is None or ahead[0]() is not self.last_view:   # (not computed ahead: now, and kept the same way)
+            ahead = (weakref.ref(self.last_view), self.odometry.correspondences(view, self.last_view))
+        view.flow_ahead = ahead
+        track = self.odometry.track(view, self.last_view, init)
+        view.flow_ahead = ahead     # the model view's tracking takes it too where it flows against the last frame
+        result.time("cross_check", t0)
+        if track.failed or track.fit is None:
+            return None
+        covariance = track.fit.covariance(self.config.health.covariance_scale_frame)
+        return FrameEstimate(track, Estimate(track.relative, covariance))
+
+    def _cross_check(self, estimate: FrameEstimate, result: FrameResult) -> np.ndarray:
+        """Combine the model view's estimate of the frame (``result``, tracked and assessed) with
+        the last frame's (:class:`slam.cross_check.CrossCheck`; health figures ``cross_check_d2``
+        and ``cross_check_mm``). Where they disagree the frame is flagged and reports the
+        better-supported one. Returns the frame's pose."""
+        if result.covariance is None:       # (no fit of the model view's estimate: as if it failed)
+            return self._keep_frame_estimate(estimate, result, "the model view's estimate has no fit")
+        model = Estimate(np.linalg.inv(self.pose) @ result.pose, result.covariance)
+        check = self.cross_check.check(model, estimate.estimate)
+        result.health.update(cross_check_d2=check.d2, cross_check_mm=check.distance_mm)
+        result.covariance = check.covariance
+        if not check.agree:
+            kept = "the last frame's" if check.kept == "frame" else "the model view's"
+            self._flag(result, f"the model view and the last frame disagree by {check.distance_mm:.2f} mm "
+                               f"(d2 {check.d2:.0f}): {kept} estimate kept")
+            if check.kept == "frame":
+                result.track = estimate.track
+        return self.pose @ check.relative
+
+    def _keep_frame_estimate(self, estimate: FrameEstimate, result: FrameResult, reason: str) -> np.ndarray:
+        """Flag the frame and report the last frame's estimate alone; returns its pose."""
+        self.cross_check.tracked_against_frame(estimate.estimate.covariance)
+        result.track, result.covariance = estimate.track, self.cross_check.P.copy()
+        self._flag(result, reason + ": the last frame's estimate kept")
+        return self.pose @ estimate.estimate.relative
+
+    def _flag(self, result: FrameResult, reason: str, model_disagrees: bool = True) -> None:
+        """Flag ``result``; ``model_disagrees``: against the model view (counts towards the rebuild)."""
+        result.flagged, result.reason = True, reason
+        self.flagged_in_row += int(model_disagrees)
+
+    def _after_flags(self, view: View, pose: np.ndarray, result: FrameResult) -> None:
+        """After ``REBUILD_AFTER`` frames flagged without the model view agreeing in between
+        (frames tracked against the previous frame, where the unfused frames leave the model
+        short of the view, do not count either way) the model around the view is taken as
+        wrong: the surfels the view sees from ``pose`` are removed and the frame is fused (not
+        flagged), so the model agrees with the last frames again."""
+        if not result.flagged:
+            if result.reference == "model":
+                self.flagged_in_row = 0
+            return
+        if self.flagged_in_row < REBUILD_AFTER or result.reason.startswith("uncertain"):
+            return
+        removed = self.map.forget_view(self.odometry.K, torch.as_tensor(pose, dtype=torch.float32),
+                                       self.camera.height, self.camera.width)
+        log.warning("%d frames flagged in a row: the model around the view is rebuilt (%d surfels removed)",
+                    self.flagged_in_row, removed)
+        result.flagged = False
+        result.reason += f"; the model around this view rebuilt ({removed} surfels removed)"
+        self.flagged_in_row = 0
+        self.rebuilds += 1
+        self.cross_check.reset()
 
     def _advance(self, position: int, view: View, pose: np.ndarray, result: FrameResult) -> None:
         """Make a tracked frame the last good one and, in frame2frame, the keyframe when the

@@ -11,7 +11,7 @@ import numpy as np
 
 from slam.health import FIGURES
 
-COLUMNS = ("frame", "timestamp", "failed", "reason", "reference", "reference_frame") + FIGURES
+COLUMNS = ("frame", "timestamp", "failed", "flagged", "reason", "reference", "reference_frame") + FIGURES
 
 
 class TrackingCsvWriter:
@@ -25,10 +25,10 @@ class TrackingCsvWriter:
         self._csv.writerow(COLUMNS)
         self._fh.flush()
 
-    def write(self, frame: int, timestamp: float, failed: bool, reason: str, reference: str,
+    def write(self, frame: int, timestamp: float, failed: bool, flagged: bool, reason: str, reference: str,
               reference_frame: int | None, figures: dict) -> None:
         assert self._fh is not None, "writer closed"
-        row = [frame, f"{timestamp:.6f}", int(failed), reason, reference,
+        row = [frame, f"{timestamp:.6f}", int(failed), int(flagged), reason, reference,
                "" if reference_frame is None else reference_frame]
         row += [_number(figures.get(name)) for name in FIGURES]
         self._csv.writerow(row)

@@ -230,8 +230,9 @@ def test_robust_3d_step_follows_the_reference_kind(synth_dir, tmp_path):
     pipe.odometry.track = recording_track
     result = pipe.run(progress=False)
     assert not any(r.failed for r in result.records)
-    # frame 1 against the map fused from frame 0, then one refinement pass per frame
-    assert calls == [True] * 10, calls
+    # frame 1 against the map fused from frame 0, then one refinement pass per frame, each
+    # frame first tracked against the last frame for the cross-check (health.cross_check)
+    assert calls == [False, True, True] * 5, calls
     frames = Pipeline(load_config(None, ["tracking.mode=frame2frame"]), open_dataset(data, cfg.data), tmp_path / "f2f")
     calls.clear()
     track = frames.odometry.track
