@@ -275,12 +275,7 @@ class Tracker:
                 self._verify_geometry(view, ref, np.linalg.inv(ref_pose) @ pose, result)
             if estimate is not None:
                 pose = result.pose = self._cross_check(estimate, result)
-        if result.covariance is not None:       # the spread of the pose reported
-            sigma_t = float(np.sqrt(max(np.trace(result.covariance[:3, :3]), 0.0)))
-            result.health.update(sigma_t_mm=sigma_t, sigma_r_deg=float(np.degrees(np.sqrt(max(
-                np.trace(result.covariance[3:, 3:]), 0.0)))))
-            if not result.flagged and sigma_t > self.config.health.flag_mm:
-                self._flag(result, f"uncertain pose (sigma_t {sigma_t:.2f} mm)", model_disagrees=False)
+        self._flag_uncertain(result)
         if estimate is None and result.covariance is not None and self.cross_check is not None:
             if result.reference == "model":
                 self.cross_check.tracked_against_model(result.covariance)
@@ -337,6 +332,17 @@ class Tracker:
         result.track, result.covariance = estimate.track, self.cross_check.P.copy()
         self._flag(result, reason + ": the last frame's estimate kept")
         return self.pose @ estimate.estimate.relative
+
+    def _flag_uncertain(self, result: FrameResult) -> None:
+        """Health figures ``sigma_t_mm``, ``sigma_r_deg`` of the covariance of the pose reported,
+        and a flag where ``sigma_t`` exceeds ``health.flag_mm``."""
+        if result.covariance is None:
+            return
+        sigma_t = float(np.sqrt(max(np.trace(result.covariance[:3, :3]), 0.0)))
+        sigma_r = float(np.degrees(np.sqrt(max(np.trace(result.covariance[3:, 3:]), 0.0))))
+        result.health.update(sigma_t_mm=sigma_t, sigma_r_deg=sigma_r)
+        if not result.flagged and sigma_t > self.config.health.flag_mm:
+            self._flag(result, f"uncertain pose (sigma_t {sigma_t:.2f} mm)", model_disagrees=False)
 
     def _flag(self, result: FrameResult, reason: str, model_disagrees: bool = True) -> None:
         """Flag ``result``; ``model_disagrees``: against the model view (counts towards the rebuild)."""

@@ -149,3 +149,24 @@ def test_a_disagreement_keeps_the_better_estimate_and_widens_the_gate():
     # a distance beyond limit_mm disagrees whatever the covariances
     loose = CrossCheck(limit_d2=1e9, limit_mm=0.5)
     assert loose.check(Estimate(_translation(1.0), model_cov), Estimate(np.eye(4), frame_cov)).kept == "frame"
+
+
+def test_an_uncertain_pose_is_flagged_in_frame2frame(tmp_path):
+    from slam.config import load_config
+    from slam.runner import run_from_config
+    from slam.synth import generate
+    from slam.tracking_csv import read_tracking_csv
+
+    data = generate(tmp_path / "seq", "rigid", frames=6, size=(96, 80), seed=9602)
+    runs = {}
+    for name, bar in (("loose", 1.5), ("tight", 1e-4)):
+        cfg = load_config(None, ["tracking.mode=frame2frame", f"health.flag_mm={bar}", "threads=1", "logging.progress=false"])
+        runs[name] = run_from_config(data, cfg, tmp_path / name, print_summary=False)
+    assert runs["loose"].metrics["flagged_frames"] == []
+    assert runs["tight"].metrics["flagged_frames"] == [1, 2, 3, 4, 5]      # frame 0 is the start
+    rows = read_tracking_csv(tmp_path / "tight" / "tracking.csv")
+    assert all(r.startswith("uncertain pose (sigma_t") for r in rows["reason"][1:])
+    assert np.all(rows["sigma_t_mm"][1:] > 1e-4)
+    # a flag does not change a frame2frame pose
+    np.testing.assert_array_equal(np.stack([r.pose for r in runs["loose"].records]),
+                                  np.stack([r.pose for r in runs["tight"].records]))

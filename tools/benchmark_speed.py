@@ -19,7 +19,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-STAGES = ["read", "stereo", "flow", "flow_back", "weights", "solve", "verify", "render", "fusion", "logging", "total"]
+STAGES = ["read", "stereo", "flow", "flow_back", "weights", "solve", "verify", "cross_check", "render", "fusion", "logging", "total"]
 
 
 def main() -> None:
