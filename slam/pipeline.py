@@ -47,7 +47,7 @@ class FrameRecord:
     cost: float = float("nan")
     health: dict = field(default_factory=dict)   # slam.health.FIGURES of the frame
     reference_position: Optional[int] = None      # the processed frame it was tracked against
-    flagged: bool = False   # frame2model's cross-check flagged it (slam.tracker.FrameResult.flagged)
+    flagged: bool = False   # an inconsistent or uncertain pose (slam.tracker.FrameResult.flagged)
 
 
 @dataclass

@@ -43,8 +43,9 @@ class FrameResult:
             last good pose).
         failed: the frame's pose could not be trusted (``reason`` says why).
         flagged: frame2model's cross-check (``health.cross_check``) found the model view's and
-            the last frame's estimates in disagreement, or the model view's estimate failed: the
-            frame reports the better-supported estimate and is not fused (``reason`` says why).
+            the last frame's estimates in disagreement, or the model view's estimate failed (the
+            frame reports the better-supported estimate), or the reported pose is uncertain
+            (``health.flag_mm``); a flagged frame is not fused (``reason`` says why).
         reason: '' for a good frame.
         reference: what the frame was tracked against: ``first`` (the first frame),
             ``previous_frame``, ``keyframe`` (an earlier frame, ``tracking.keyframe_gap``),
@@ -219,7 +220,7 @@ class Tracker:
         if self.known_poses:
             return self.learned_fusion_weight
         return (not self.frame2model or self.config.tracking.flow_reference == "last_frame"
-                or self.config.health.cross_check > 0)
+                or self.cross_check is not None)
 
     # ------------------------------------------------------------------ one frame
     def track(self, position: int, view: View, gt_pose: Optional[np.ndarray] = None) -> FrameResult:
@@ -359,7 +360,7 @@ class Tracker:
             if result.reference == "model":
                 self.flagged_in_row = 0
             return
-        if self.flagged_in_row < REBUILD_AFTER or result.reason.startswith("uncertain"):
+        if self.flagged_in_row < REBUILD_AFTER:     # (reached only on a disagreement: it rebuilds at once)
             return
         removed = self.map.forget_view(self.odometry.K, torch.as_tensor(pose, dtype=torch.float32),
                                        self.camera.height, self.camera.width)
