@@ -30,9 +30,11 @@ import torch
 import yaml
 
 from mapping import MapConfig
-from slam.errors import ConfigError, SlamError
+from slam.errors import ConfigError, DataError, SlamError
 from slam.frame_view import frame_view
 from slam.rectification import original_to_rect_pose
+from slam.synth.appearance import parse_appearance
+from slam.synth.generate import SCENARIOS
 from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
 from vo.ddn import declarative_pose
 from vo.geometry import backproject
@@ -63,6 +65,11 @@ class TrainDataConfig:
         pixels_per_pair: pose-problem pixels kept per pair.
         breathing_follows_tissue: passed to the generator (correlation of the breathing amplitude
             with the tissue's look; 0 = independent).
+        appearance: how the synthetic sequences look (``slam synth --appearance``): empty for the
+            generator's own look, ``random`` for one look per sequence drawn from the ranges of
+            :func:`slam.synth.appearance.random_appearance` (texture from rich to nearly none,
+            highlights, smoke, exposure changes, vignetting, tissue colour) with the seed
+            :func:`appearance_seed` of its scenario and seed, or ``KEY=VALUE,...`` for one look.
         reference: what a pair's reference view is: ``frame`` (the camera frame, as in
             frame2frame) or ``model`` (the surfel map fused from the frames up to the reference
             frame at their ground-truth poses, rendered at the reference frame's pose, as
@@ -96,6 +103,7 @@ class TrainDataConfig:
     moving_threshold_deg: float = 0.1
     pixels_per_pair: int = 4096
     breathing_follows_tissue: float = 0.0
+    appearance: str = ""
     reference: str = "frame"
     min_model_coverage: float = 0.95
     chain_length: int = 1
@@ -178,6 +186,10 @@ def load_train_config(path: str | Path, overrides: list[str] | None = None) -> T
         cfg.map.validate()
     except ValueError as err:
         raise ConfigError(f"{path}: {err}") from None
+    try:
+        parse_appearance(cfg.data.appearance, 0)
+    except DataError as err:
+        raise ConfigError(f"{path}: data.appearance: {err}") from None
     if cfg.optim.split not in ("sequence", "pair"):
         raise ConfigError(f"{path}: 'optim.split' must be sequence or pair")
     if not isinstance(cfg.data.chain_length, int) or cfg.data.chain_length < 1:
@@ -198,18 +210,28 @@ def training_sequences(cfg: TrainConfig, progress: bool = True) -> list[Path]:
 
     root = Path(cfg.data.cache_dir) / "sequences"
     paths = []
+    look = cfg.data.appearance.strip()
     for scenario in cfg.data.scenarios:
         for seed in cfg.data.seeds:
             follows = cfg.data.breathing_follows_tissue
             tag = f"_ft{follows:g}" if follows else ""
+            tag += f"_{look.replace('=', '').replace(',', '_')}" if look not in ("", "default") else ""
             out = root / f"{scenario}_s{seed}_{cfg.data.width}x{cfg.data.height}_n{cfg.data.frames}{tag}"
             if not (out / "groundtruth.txt").is_file():
                 log.info("generating %s", out)
+                appearance = parse_appearance(look, appearance_seed(scenario, seed))
                 generate(out, scenario, frames=cfg.data.frames, size=(cfg.data.width, cfg.data.height), seed=seed,
-                         progress=progress, breathing_follows_tissue=follows)
+                         progress=progress, breathing_follows_tissue=follows, appearance=appearance)
             paths.append(out)
     paths += [Path(p) for p in cfg.data.sequences]
     return paths
+
+
+def appearance_seed(scenario: str, seed: int) -> int:
+    """The seed of a training sequence's random look: its own seed, offset per scenario so that the
+    scenarios of one seed look different (``slam synth --appearance random --seed`` this value
+    draws the same look)."""
+    return SCENARIOS.index(scenario) * 100_000 + int(seed)
 
 
 def relative_rect_transform(gt: np.ndarray, R1: np.ndarray, i: int, j: int) -> np.ndarray:
@@ -310,7 +332,7 @@ def chain_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor, lengt
 def _cache_key(cfg: TrainConfig, path: Path) -> str:
     """What the samples of one sequence depend on (not on which other sequences are trained)."""
     data = asdict(cfg.data)
-    for name in ("breathing_follows_tissue", "scenarios", "seeds", "sequences", "cache_dir"):
+    for name in ("breathing_follows_tissue", "appearance", "scenarios", "seeds", "sequences", "cache_dir"):
         data.pop(name)  # the sequence itself is named by its path (the coupling is in the folder name)
     data.pop("chain_length")    # ("pairs" below marks the caches of every consecutive pair)
     if cfg.data.reference == "frame":

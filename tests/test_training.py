@@ -99,6 +99,9 @@ def test_bad_training_config(tmp_path, capsys):
     path.write_text("map:\n  min_depth_mm: -5\n")
     assert main(["train", "--config", str(path)]) == 2
     assert f"{path}: mapping: need 0 < min_depth_mm" in capsys.readouterr().err
+    path.write_text("data:\n  appearance: texture=2\n")
+    assert main(["train", "--config", str(path)]) == 2
+    assert f"{path}: data.appearance: synthetic appearance: texture 2.0 is outside 0.0..1.0" in capsys.readouterr().err
     path.write_text("optim:\n  init: nowhere.pt\n")
     assert main(["train", "--config", str(path)]) == 2
     assert f"{path}: optim.init checkpoint nowhere.pt not found" in capsys.readouterr().err
@@ -306,3 +309,26 @@ def test_chain_loss_on_consecutive_pairs(tmp_path):
     assert len(chains_of(val, 3)) * 3 == len(val) > 0               # validation holds whole chains
     nets, _ = load_weight_networks(tmp_path / "chain" / "weights_2d3d.pt", "2d3d")
     assert abs(evaluate_loss(nets, val, tcfg)[0] - ckpt["val_loss"]) < 1e-6
+
+
+def test_training_sequences_with_random_looks(tmp_path):
+    """data.appearance=random: one look per scenario and seed, drawn as slam synth --appearance
+    random draws it from appearance_seed, in folders of their own beside the default look's."""
+    import json
+
+    from slam.synth.appearance import random_appearance
+    from slam.training import appearance_seed, load_train_config, training_sequences
+
+    cfg = dict(TINY)
+    cfg["data"] = {**TINY["data"], "frames": 3, "cache_dir": str(tmp_path / "cache")}
+    path = tmp_path / "looks.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    paths = training_sequences(load_train_config(path, ["data.appearance=random"]), progress=False)
+    assert [p.name for p in paths] == ["rigid_s5000_96x80_n3_random", "breathing_s5000_96x80_n3_random"]
+    looks = [json.loads((p / "synth.json").read_text())["appearance"] for p in paths]
+    assert looks[0] != looks[1]
+    for scenario, look in zip(["rigid", "breathing"], looks):
+        assert look == random_appearance(appearance_seed(scenario, 5000)).as_dict()
+    plain = training_sequences(load_train_config(path), progress=False)
+    assert [p.name for p in plain] == ["rigid_s5000_96x80_n3", "breathing_s5000_96x80_n3"]
+    assert json.loads((plain[0] / "synth.json").read_text())["appearance"]["texture"] == 1.0

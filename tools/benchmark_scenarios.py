@@ -4,6 +4,7 @@ and macro averages, for constant and learned weights (ablation).
     .venv/bin/python tools/benchmark_scenarios.py [--scenarios breathing scanning deforming]
         [--seeds 9001 9002 9003 9101 ... 9107] [--frames 150] [--size 320x256] [--workers 2]
         [--out runs/scenarios] [--methods ...] [--checkpoints DIR] [--reuse EARLIER_OUT]
+        [--appearance random | texture=0.1,highlights=1,...]
     .venv/bin/python tools/benchmark_scenarios.py --report runs/scenarios   # the tables of a finished run
 
 Evaluation seeds are disjoint from the training seeds (configs/train.yaml, 1000+): 9001-9003 were
@@ -104,6 +105,16 @@ class WeightStats:
         return out
 
 
+def generate_job(job: dict) -> None:
+    """Render the sequence of ``job`` (its scenario, seed, size, frames and look) into ``job["data"]``."""
+    from slam.synth import generate
+    from slam.synth.appearance import parse_appearance
+
+    generate(job["data"], job["scenario"], frames=job["frames"], size=tuple(job["size"]), seed=job["seed"],
+             breathing_follows_tissue=job["follows"], camera_speed=job.get("camera_speed", 1.0),
+             appearance=parse_appearance(job.get("appearance"), job["seed"]))
+
+
 def run_one(job: dict) -> dict:
     import torch
 
@@ -115,8 +126,7 @@ def run_one(job: dict) -> dict:
 
     data = Path(job["data"])
     if not (data / "groundtruth.txt").is_file():
-        generate(data, job["scenario"], frames=job["frames"], size=tuple(job["size"]), seed=job["seed"],
-                 breathing_follows_tissue=job["follows"], camera_speed=job.get("camera_speed", 1.0))
+        generate_job(job)
     overrides = list(METHODS[job["method"]])
     if job.get("checkpoints") and "weights.mode=learned" in overrides:
         residuals = next(o.split("=", 1)[1] for o in overrides if o.startswith("weights.residuals="))
@@ -149,6 +159,9 @@ def main() -> None:
     ap.add_argument("--camera-speed", type=float, default=1.0, metavar="S",
                     help="generate the sequences with the moving cameras' motion per frame scaled by S "
                          "(slam synth --camera-speed; 0.1: creeping below tracking's still threshold)")
+    ap.add_argument("--appearance", default=None, metavar="SPEC",
+                    help="generate the sequences with this look (slam synth --appearance: 'random' draws one per "
+                         "seed, or KEY=VALUE,... such as texture=0.1,highlights=1)")
     ap.add_argument("--checkpoints", default=None,
                     help="folder with weights_{2d3d,2d,3d}.pt to use instead of the packaged checkpoints")
     ap.add_argument("--report", default=None, metavar="DIR",
@@ -172,20 +185,19 @@ def main() -> None:
         for seed in args.seeds:
             tag = f"_ft{args.breathing_follows_tissue:g}" if args.breathing_follows_tissue else ""
             tag += f"_v{args.camera_speed:g}" if args.camera_speed != 1.0 else ""
+            tag += f"_{args.appearance.replace('=', '').replace(',', '_')}" if args.appearance else ""
             data = out / "data" / f"{scenario}_s{seed}_{args.size}_{args.frames}{tag}"
             for method in args.methods:
                 jobs.append({"scenario": scenario, "seed": seed, "method": method, "data": str(data),
                              "frames": args.frames, "size": [w, h], "extra": args.set,
                              "follows": args.breathing_follows_tissue, "camera_speed": args.camera_speed,
+                             "appearance": args.appearance,
                              "checkpoints": args.checkpoints,
                              "out": str(out / "runs" / f"{scenario}_s{seed}_{method.replace(' ', '_').replace('&', 'and')}")})
     # generate each sequence once before the workers share it
-    from slam.synth import generate
-
     for job in {j["data"]: j for j in jobs}.values():
         if not (Path(job["data"]) / "groundtruth.txt").is_file():
-            generate(job["data"], job["scenario"], frames=job["frames"], size=(w, h), seed=job["seed"],
-                     breathing_follows_tissue=job["follows"], camera_speed=job["camera_speed"])
+            generate_job(job)
     with ProcessPoolExecutor(args.workers) as pool:
         results = list(pool.map(run_one, jobs))
     methods = args.methods
