@@ -33,7 +33,7 @@ from mapping import MapConfig
 from slam.errors import ConfigError, DataError, SlamError
 from slam.frame_view import frame_view
 from slam.rectification import original_to_rect_pose
-from slam.synth.appearance import parse_appearance
+from slam.synth.appearance import appearance_tag, parse_appearance
 from slam.synth.generate import SCENARIOS
 from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
 from vo.ddn import declarative_pose
@@ -215,7 +215,7 @@ def training_sequences(cfg: TrainConfig, progress: bool = True) -> list[Path]:
         for seed in cfg.data.seeds:
             follows = cfg.data.breathing_follows_tissue
             tag = f"_ft{follows:g}" if follows else ""
-            tag += f"_{look.replace('=', '').replace(',', '_')}" if look not in ("", "default") else ""
+            tag += appearance_tag(look)
             out = root / f"{scenario}_s{seed}_{cfg.data.width}x{cfg.data.height}_n{cfg.data.frames}{tag}"
             if not (out / "groundtruth.txt").is_file():
                 log.info("generating %s", out)

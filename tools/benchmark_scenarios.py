@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from slam.synth.appearance import appearance_tag
 from vo.geometry import change_along_flow
 
 PAIR_MOTION_MM = 0.02   # "moved between the two frames" (the median per-frame non-rigid motion is 0.02-0.04 mm)
@@ -185,7 +186,7 @@ def main() -> None:
         for seed in args.seeds:
             tag = f"_ft{args.breathing_follows_tissue:g}" if args.breathing_follows_tissue else ""
             tag += f"_v{args.camera_speed:g}" if args.camera_speed != 1.0 else ""
-            tag += f"_{args.appearance.replace('=', '').replace(',', '_')}" if args.appearance else ""
+            tag += appearance_tag(args.appearance)
             data = out / "data" / f"{scenario}_s{seed}_{args.size}_{args.frames}{tag}"
             for method in args.methods:
                 jobs.append({"scenario": scenario, "seed": seed, "method": method, "data": str(data),

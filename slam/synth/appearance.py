@@ -102,6 +102,16 @@ def parse_appearance(text: str | None, seed: int) -> Appearance:
     return Appearance(**values)
 
 
+def appearance_tag(text: str | None) -> str:
+    """The suffix a sequence folder of the look ``text`` (as :func:`parse_appearance` reads it)
+    carries: empty for today's look, else ``_`` and the spec without its separators
+    (``texture=0,highlights=1`` -> ``_texture0_highlights1``)."""
+    look = (text or "").strip()
+    if look in ("", "default"):
+        return ""
+    return "_" + look.replace("=", "").replace(",", "_")
+
+
 class ExposureWalk:
     """The camera's automatic exposure: a gain per frame, ``exp(g_t)`` with ``g_t`` a
     mean-reverting random walk of stationary standard deviation ``jitter`` (Ornstein-Uhlenbeck,
