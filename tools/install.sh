@@ -19,4 +19,4 @@ fi
 # The CPU build first: an unpinned torch would pull a multi-GB CUDA build.
 "$VENV/bin/python" -m pip install -q "torch==2.13.0"
 "$VENV/bin/python" -m pip install -q -e ".[dev]"
-"$VENV/bin/python" -c "import torch, open3d, cv2, kornia, rerun, numba; print('environment ready: torch', torch.__version__, '| open3d', open3d.__version__, '| opencv', cv2.__version__)"
+"$VENV/bin/python" -c "import torch, open3d, cv2, kornia, rerun, numba, gtsam; print('environment ready: torch', torch.__version__, '| open3d', open3d.__version__, '| opencv', cv2.__version__)"
