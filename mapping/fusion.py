@@ -229,10 +229,13 @@ class _Timer:
 
 
 def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measurement, frame: int,
-               timer: _Timer | None = None, *, skip_covered: bool = SKIP_COVERED) -> dict:
+               timer: _Timer | None = None, *, skip_covered: bool = SKIP_COVERED,
+               active_from: int | None = None) -> dict:
     """Fuse one prepared frame into ``store``; returns stats (matched, added, removed, visible, ...).
 
-    ``skip_covered``: unmatched pixels on a neighbour's disc add no surfel (:func:`covered_pixels`)."""
+    ``skip_covered``: unmatched pixels on a neighbour's disc add no surfel (:func:`covered_pixels`).
+    ``active_from``: only surfels last fused at this frame or later are matched, updated or
+    carved (the active model); the others stay as they are."""
     timer = timer or _Timer(False, store.device)
     dev = store.device
     H, W = cam.height, cam.width
@@ -250,7 +253,8 @@ def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measuremen
     # the visible set includes the ring a render of this view needs (cached for it below); the
     # fusion itself only uses the surfels whose centre lies inside the image
     compiled = kernels.use_compiled(cfg, dev)
-    vis = visible_set(store, cam, NEAR_MM, FAR_MM, margin_px=float(SPLAT_MAX_HALF), compiled=compiled)
+    vis = visible_set(store, cam, NEAR_MM, FAR_MM, margin_px=float(SPLAT_MAX_HALF), compiled=compiled,
+                      seen_from=active_from)
     timer.lap("cull")
 
     matched_pix = torch.zeros(HW, dtype=torch.bool, device=dev)

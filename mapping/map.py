@@ -6,8 +6,9 @@ import torch
 
 from . import export
 from .config import MapConfig
-from .fusion import MIN_FUSE_WEIGHT, SKIP_COVERED, _Timer, fuse_frame, measure
-from .render import Camera, ModelView, render
+from . import kernels
+from .fusion import FREE_SPACE_REL, MIN_FUSE_WEIGHT, SKIP_COVERED, _Timer, fuse_frame, measure
+from .render import FAR_MM, NEAR_MM, Camera, ModelView, render, visible_set
 from .surfels import CHUNK_SIZE, COMPACT_FRACTION, INITIAL_CAPACITY, SurfelStore
 
 
@@ -52,7 +53,8 @@ class SurfelMap:
         self.frames_fused = 0
 
     # ------------------------------------------------------------------ fusion
-    def fuse(self, depth, color, K, T_wc, frame_index: int, weight=None, valid=None) -> dict:
+    def fuse(self, depth, color, K, T_wc, frame_index: int, weight=None, valid=None,
+             active_from: int | None = None) -> dict:
         """Fuse one frame; returns stats ``matched``, ``added``, ``removed`` (free-space, merged and
         expired surfels; plus ``merged``, ``decayed``: stable surfels whose confidence a free-space
         violation decayed, ``visible``: surfels in view before fusion, ``surfels``: live after).
@@ -64,6 +66,9 @@ class SurfelMap:
             frame_index: frame counter (non-decreasing), used for the time window.
             weight: optional ``(H, W)`` in [0, 1]; 0 = not fused (instrument, specular, deforming).
             valid: optional ``(H, W)`` bool; False = not fused.
+            active_from: only the active model takes part: surfels last fused at this frame
+                index or later (ElasticFusion's active/inactive split); the inactive ones are
+                neither matched, updated nor carved. None: every surfel.
         """
         timer = _Timer(self.profile, self.device)
         H, W = depth.shape[-2:]
@@ -71,7 +76,7 @@ class SurfelMap:
         meas = measure(depth, color, cam, self.config, weight, valid, min_fuse_weight=self.min_fuse_weight)
         timer.lap("measure")
         stats = fuse_frame(self.store, self.config, cam, meas, int(frame_index), timer,
-                           skip_covered=self.skip_covered)
+                           skip_covered=self.skip_covered, active_from=active_from)
         self.frames_fused += 1
         if self.profile:
             self.last_timings = dict(timer.times)
@@ -97,24 +102,33 @@ class SurfelMap:
             scratch.render(K, T, H, W, colour=False).with_colour()
 
     # ------------------------------------------------------------------ rendering
-    def render(self, K, T_wc, height: int, width: int, stable_only: bool = False, colour: bool = True) -> ModelView:
+    def render(self, K, T_wc, height: int, width: int, stable_only: bool = False, colour: bool = True, *,
+               seen_from: int | None = None, seen_before: int | None = None) -> ModelView:
         """Splat the map into a ``height x width`` view from ``T_wc`` (see :class:`ModelView`);
-        ``colour=False``: depth, normals and confidence only (the colour is left zero)."""
+        ``colour=False``: depth, normals and confidence only (the colour is left zero);
+        ``seen_from``, ``seen_before``: only the surfels last fused at a frame index in
+        ``[seen_from, seen_before)`` (the active model: ``seen_from``; the inactive one:
+        ``seen_before``)."""
         timer = _Timer(self.profile, self.device)
-        view, nvis = render(self.store, self.config, K, T_wc, int(height), int(width), stable_only, colour)
+        view, nvis = render(self.store, self.config, K, T_wc, int(height), int(width), stable_only, colour,
+                            seen_from=seen_from, seen_before=seen_before)
         timer.lap("render")
         if self.profile:
             self.last_timings = {**self.last_timings, **timer.times, "render_visible": float(nvis)}
         return view
 
-    def forget_view(self, K, T_wc, height: int, width: int) -> int:
+    def forget_view(self, K, T_wc, height: int, width: int, seen_from: int | None = None) -> int:
         """Remove the surfels a ``height x width`` view from ``T_wc`` sees: those that project
         inside the image no further than ``free_space_mm`` behind the rendered surface (the
         surface and what lies in front of it, the part of the map the view would fuse into), so
-        that the next fused frame rebuilds that part of the map. Returns how many were removed."""
-        view, _ = render(self.store, self.config, K, T_wc, int(height), int(width), False, False)
+        that the next fused frame rebuilds that part of the map; ``seen_from``: of the active
+        model only (last fused at this frame index or later). Returns how many were removed."""
+        view, _ = render(self.store, self.config, K, T_wc, int(height), int(width), False, False, seen_from=seen_from)
         st = self.store
-        alive = st.alive[: st.n].nonzero().squeeze(1)
+        alive = st.alive[: st.n]
+        if seen_from is not None:
+            alive = alive & (st.t_last[: st.n] >= int(seen_from))
+        alive = alive.nonzero().squeeze(1)
         if alive.numel() == 0:
             return 0
         cam = Camera.make(K, T_wc, height, width, self.device)
@@ -130,6 +144,80 @@ class SurfelMap:
         removed = st.kill(alive[seen])
         st.maybe_compact()
         return removed
+
+    # ------------------------------------------------------------------ loop closure
+    def last_seen_in_view(self, K, T_wc, height: int, width: int, seen_before: int) -> torch.Tensor:
+        """``(V,)`` int64 frame indices at which the surfels a view from ``T_wc`` sees were last
+        fused, for those last fused before ``seen_before`` (the inactive model in view)."""
+        cam = Camera.make(K, T_wc, height, width, self.device)
+        vis = visible_set(self.store, cam, NEAR_MM, FAR_MM, compiled=kernels.use_compiled(self.config, self.device),
+                          seen_before=seen_before)
+        return self.store.t_last.index_select(0, vis.slots).long()
+
+    def move_surfels(self, corrections: torch.Tensor) -> int:
+        """Move every live surfel rigidly with the frame it was last fused at: ``corrections``
+        ``(F, 4, 4)`` holds, per frame index, the correction ``T_new T_old^-1`` of that frame's
+        pose (a pose-graph optimisation; surfels last fused at a frame index >= F keep their
+        place). Positions and normals move; the chunk boxes are rebuilt and the cached view
+        dropped. Returns how many surfels moved."""
+        st = self.store
+        n = st.n
+        slots = st.alive[:n].nonzero().squeeze(1)
+        if slots.numel() == 0:
+            return 0
+        t = st.t_last.index_select(0, slots).long()
+        inside = t < corrections.shape[0]
+        slots, t = slots[inside], t[inside]
+        C = corrections.to(device=self.device, dtype=st.pos.dtype).index_select(0, t)      # (M, 4, 4)
+        R, tr = C[:, :3, :3], C[:, :3, 3]
+        st.pos.index_copy_(0, slots, (R @ st.pos.index_select(0, slots)[:, :, None])[:, :, 0] + tr)
+        st.normal.index_copy_(0, slots, (R @ st.normal.index_select(0, slots)[:, :, None])[:, :, 0])
+        st.update_boxes(torch.arange(st.num_chunks, device=self.device))
+        st.version += 1
+        st.edits += 1
+        st.scratch.pop("view", None)
+        return int(slots.numel())
+
+    def reactivate_view(self, K, T_wc, height: int, width: int, frame_index: int, active_from: int) -> tuple[int, int]:
+        """After a loop closure has brought the inactive model in line with the view from
+        ``T_wc``: the inactive surfels the view sees (last fused before ``active_from``, on or in
+        front of their rendered surface) become active again (last seen at ``frame_index``), and
+        the active surfels that duplicate them (within the free-space margin of that surface)
+        are merged into them: removed, their confidence added to the surface they duplicate.
+        Returns ``(reactivated, merged)``."""
+        H, W = int(height), int(width)
+        old, _ = render(self.store, self.config, K, T_wc, H, W, False, False, seen_before=active_from)
+        st = self.store
+        n = st.n
+        alive = st.alive[:n].nonzero().squeeze(1)
+        if alive.numel() == 0:
+            return 0, 0
+        cam = Camera.make(K, T_wc, H, W, self.device)
+        p = cam.to_cam(st.pos.index_select(0, alive))
+        z = p[:, 2]
+        zs = z.clamp(min=1e-6)
+        u = torch.round(cam.fx * p[:, 0] / zs + cam.cx).long()
+        v = torch.round(cam.fy * p[:, 1] / zs + cam.cy).long()
+        inside = (z > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        pix = (v.clamp(0, H - 1) * W + u.clamp(0, W - 1))
+        surface = torch.where(inside, old.depth.reshape(-1).index_select(0, pix), torch.zeros_like(z))
+        margin = torch.clamp_min(FREE_SPACE_REL * surface, self.config.free_space_mm)
+        near_surface = inside & (surface > 0) & ((z - surface).abs() <= margin)
+        t_last = st.t_last.index_select(0, alive)
+        inactive = t_last < active_from
+        revive = alive[near_surface & inactive]
+        duplicate = alive[near_surface & ~inactive]
+        if duplicate.numel():       # their confidence goes to the old surface at their pixel
+            conf = torch.zeros(H * W, dtype=st.conf.dtype, device=self.device)
+            conf.index_add_(0, pix[near_surface & ~inactive], st.conf.index_select(0, duplicate))
+            gain = conf.index_select(0, pix[near_surface & inactive])
+            st.conf.index_copy_(0, revive, (st.conf.index_select(0, revive) + gain).clamp_max(self.config.max_confidence))
+        st.t_last.index_fill_(0, revive, int(frame_index))
+        merged = st.kill(duplicate)
+        st.edits += 1
+        st.scratch.pop("view", None)
+        st.maybe_compact()
+        return int(revive.numel()), merged
 
     # ------------------------------------------------------------------ queries
     def __len__(self) -> int:

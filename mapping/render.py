@@ -223,15 +223,31 @@ def cull_chunks(store: SurfelStore, cam: Camera, near: float, far: float, margin
     return finite & ~outside
 
 
+def seen_mask(store: SurfelStore, seen_from: int | None, seen_before: int | None) -> torch.Tensor:
+    """``(capacity,)`` bool: live surfels last fused at a frame in ``[seen_from, seen_before)``
+    (an open end where None)."""
+    n = store.n
+    mask = store.alive.clone()
+    if seen_from is not None:
+        mask[:n] &= store.t_last[:n] >= int(seen_from)
+    if seen_before is not None:
+        mask[:n] &= store.t_last[:n] < int(seen_before)
+    return mask
+
+
 def visible_set(store: SurfelStore, cam: Camera, near: float, far: float, margin_px: float = 0.0,
                 stable_threshold: float | None = None, candidates: torch.Tensor | None = None,
-                compiled: bool = False) -> VisibleSet:
+                compiled: bool = False, seen_from: int | None = None,
+                seen_before: int | None = None) -> VisibleSet:
     """Live surfels whose centre projects inside the image grown by ``margin_px``, depth in [near, far].
 
     ``stable_threshold``: keep only surfels with at least this confidence.
     ``candidates``: slots known to contain every such surfel (skips the chunk culling).
     ``compiled``: test the surfels with :func:`mapping.kernels.visible_surfels` (CPU store).
+    ``seen_from``, ``seen_before``: keep only surfels last fused at a frame in
+    ``[seen_from, seen_before)`` (the active or the inactive model; an open end where None).
     """
+    filtered = seen_from is not None or seen_before is not None
     dev = store.device
     if store.n == 0:
         e = torch.zeros(0, device=dev)
@@ -241,7 +257,7 @@ def visible_set(store: SurfelStore, cam: Camera, near: float, far: float, margin
         chunks = _culled_chunk_ids(store, cam, near, far, margin_px) if candidates is None else none
         out = kernels.visible_surfels(
             chunks.numpy(), (none if candidates is None else candidates).numpy(), store.chunk_size, store.n,
-            store.alive.numpy(), store.conf.numpy(), store.pos.numpy(), cam.R_cw.contiguous().numpy(), cam.t_cw.numpy(),
+            (seen_mask(store, seen_from, seen_before) if filtered else store.alive).numpy(), store.conf.numpy(), store.pos.numpy(), cam.R_cw.contiguous().numpy(), cam.t_cw.numpy(),
             cam.fx, cam.fy, cam.cx, cam.cy, near, far, -0.5 - margin_px, cam.width - 0.5 + margin_px,
             -0.5 - margin_px, cam.height - 0.5 + margin_px,
             -float("inf") if stable_threshold is None else float(stable_threshold))
@@ -252,6 +268,8 @@ def visible_set(store: SurfelStore, cam: Camera, near: float, far: float, margin
         slots = take(candidates, take(store.alive, candidates).nonzero().squeeze(1))
     if stable_threshold is not None and slots.numel():
         slots = take(slots, (take(store.conf, slots) >= stable_threshold).nonzero().squeeze(1))
+    if filtered and slots.numel():
+        slots = take(slots, take(seen_mask(store, seen_from, seen_before), slots).nonzero().squeeze(1))
     p = cam.to_cam(take(store.pos, slots))
     z = p[:, 2]
     zs = z.clamp_min(1e-6)
@@ -650,18 +668,21 @@ def splat(store: SurfelStore, vis: VisibleSet, cam: Camera, cfg: MapConfig, colo
 
 def render(store: SurfelStore, cfg: MapConfig, K, T_wc, height: int, width: int,
            stable_only: bool = False, colour: bool = True, *,
-           cull_hidden_unstable: bool = RENDER_CULL_HIDDEN_UNSTABLE) -> tuple[ModelView, int]:
+           cull_hidden_unstable: bool = RENDER_CULL_HIDDEN_UNSTABLE, seen_from: int | None = None,
+           seen_before: int | None = None) -> tuple[ModelView, int]:
     """Render the store from ``T_wc``; returns the view and the number of visible surfels
-    (``cull_hidden_unstable``: see :func:`splat`)."""
+    (``cull_hidden_unstable``: see :func:`splat`; ``seen_from``, ``seen_before``: only the
+    surfels last fused in that frame range, see :func:`visible_set`)."""
     cam = Camera.make(K, T_wc, height, width, store.device)
     if store.n == 0 or store.num_alive == 0:
         return ModelView.empty(height, width, store.device), 0
     # right after fusing a frame at this very view, its visible set (plus the new surfels) is reused
     cached = store.scratch.get("view")
     candidates = None
-    if cached is not None and cached[0] == cam.key and cached[1] == store.version:
+    # (the fusion's set holds every surfel seen since its frame's window start: not the inactive ones)
+    if cached is not None and cached[0] == cam.key and cached[1] == store.version and seen_before is None:
         candidates = cached[2]
     vis = visible_set(store, cam, NEAR_MM, FAR_MM, margin_px=float(SPLAT_MAX_HALF),
                       stable_threshold=cfg.stable_confidence if stable_only else None, candidates=candidates,
-                      compiled=kernels.use_compiled(cfg, store.device))
+                      compiled=kernels.use_compiled(cfg, store.device), seen_from=seen_from, seen_before=seen_before)
     return splat(store, vis, cam, cfg, colour, cull_hidden_unstable=cull_hidden_unstable), len(vis)
