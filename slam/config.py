@@ -128,6 +128,32 @@ class HealthConfig:
 
 
 @dataclass
+class GraphConfig:
+    """Frame2model's pose graph and loop closure (``slam.loop_closure``, ``slam.pose_graph``).
+
+    Attributes:
+        loop_closure: keep a pose graph of keyframes and close loops: tracking and fusion use
+            the active model only (surfels fused within the last ``inactive_after`` frames);
+            at each new graph keyframe the inactive model is rendered at the pose, the frame is
+            registered against it by the dense tracker and, once verified, the loop edge goes
+            into the graph (GTSAM, graduated non-convexity against false loops); an accepted
+            loop moves the keyframes, the frames' poses and the surfels with them, and the
+            inactive surfels in view become active again. ``trajectory.txt`` then holds the
+            optimised poses, ``trajectory_online.txt`` the poses as tracked.
+        keyframe_mm: a frame becomes a graph keyframe once the camera has moved this far from
+            the last one ...
+        keyframe_deg: ... or turned this far.
+        inactive_after: surfels not fused for this many frames are inactive: they are not
+            tracked against nor fused into until a loop closure brings them back.
+    """
+
+    loop_closure: bool = False
+    keyframe_mm: float = 5.0
+    keyframe_deg: float = 5.0
+    inactive_after: int = 50
+
+
+@dataclass
 class LoggingConfig:
     """Outputs besides the trajectory.
 
@@ -169,6 +195,7 @@ class SlamConfig:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     health: HealthConfig = field(default_factory=HealthConfig)
     map: MapConfig = field(default_factory=MapConfig)
+    graph: GraphConfig = field(default_factory=GraphConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
 
     def vo(self):
@@ -316,6 +343,8 @@ def validate(config: SlamConfig) -> None:
         (config.weights.w2d >= 0 and config.weights.w3d >= 0, "weights.w2d/w3d must be >= 0"),
         (0.0 < config.depth.temporal_gain <= 1.0, "depth.temporal_gain must be in (0, 1] (1 = off)"),
         (config.depth.temporal_gate_mm > 0, "depth.temporal_gate_mm must be > 0"),
+        (config.graph.keyframe_mm > 0 and config.graph.keyframe_deg > 0, "graph.keyframe_mm and keyframe_deg must be > 0"),
+        (config.graph.inactive_after >= 1, "graph.inactive_after must be >= 1"),
         (config.depth.temporal_still_mm >= 0, "depth.temporal_still_mm must be >= 0 (0 = filter every frame)"),
     ]
     for ok, message in checks:
@@ -338,7 +367,7 @@ def at_frame_rate(config: SlamConfig, fps: float) -> SlamConfig:
     (``solver.max_translation_mm``) by ``REFERENCE_FPS / fps``; the depth filter's gate
     (``depth.temporal_gate_mm``) likewise but never below its value (it also spans the stereo
     noise, which the rate does not change); the keyframe's gap in frames (``tracking.keyframe_gap``)
-    by ``fps / REFERENCE_FPS``, at least 1. The map's unstable window stays counted in frames: it
+    and the active model's window (``graph.inactive_after``) by ``fps / REFERENCE_FPS``, at least 1. The map's unstable window stays counted in frames: it
     is how many observations a new surfel gets to become stable (in seconds, 5 fps left it four
     frames: most of the last frame's surfels were removed before the next one was tracked). At
     ``REFERENCE_FPS`` the config itself."""
@@ -353,6 +382,7 @@ def at_frame_rate(config: SlamConfig, fps: float) -> SlamConfig:
     out.solver.max_translation_mm *= k
     out.depth.temporal_gate_mm *= max(1.0, k)
     out.tracking.keyframe_gap = max(1, int(round(config.tracking.keyframe_gap / k)))
+    out.graph.inactive_after = max(1, int(round(config.graph.inactive_after / k)))
     return out
 
 

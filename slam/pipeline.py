@@ -264,6 +264,15 @@ class Pipeline:
             self.logger.log_frame(k, frame, view, track, record, self.map, self.odometry.camera, pose_rect)
             self._time("logging", (time.perf_counter() - t0) * 1000.0)
 
+    def _write_optimised(self, records: list, poses: np.ndarray) -> None:
+        """With loop closure: the streamed ``trajectory.txt`` (the poses as tracked) becomes
+        ``trajectory_online.txt`` and ``trajectory.txt`` gets the optimised ``poses``."""
+        from slam.tum import write_tum
+
+        path = self.out_dir / "trajectory.txt"
+        os.replace(path, self.out_dir / "trajectory_online.txt")
+        write_tum(path, np.array([r.timestamp for r in records]), poses)
+
     # --------------------------------------------------------------------------------------
     def _finish(self, result: RunResult, wall_s: float) -> None:
         from slam.evaluation import evaluate
@@ -272,6 +281,11 @@ class Pipeline:
         records = result.records
         done = len(records)
         est = np.stack([r.pose for r in records]) if records else np.zeros((0, 4, 4))
+        online = None
+        optimised = self.tracker.optimised_poses(range(done))
+        if optimised is not None and done:      # loop closure: the optimised poses are the result
+            online, est = est, optimised @ self.R1
+            self._write_optimised(records, est)
         metrics: dict = {
             "data": str(self.dataset.path),
             "frames": done,
@@ -291,17 +305,25 @@ class Pipeline:
         if result.interrupted:
             metrics["interrupted"] = True
             metrics["stopped_before_frame"] = int(self.dataset.indices[done]) if done < len(self.dataset) else None
+        if self.tracker.loops is not None:
+            metrics["loop_closure"] = self.tracker.loops.summary(done, float(np.sum(self.timings.get("loop", [0.0]))))
         gt = self.dataset.gt_poses
         gt_sel = gt[:done] if gt is not None else None
         stamps = np.array([r.timestamp for r in records])
+        online_sel = online
         if gt_sel is not None:      # frames without a ground-truth pose (associated by time) are left out
             known = np.all(np.isfinite(gt_sel.reshape(len(gt_sel), -1)), axis=1)
             if not known.all():
                 metrics["frames_without_groundtruth"] = int((~known).sum())
                 gt_sel, est, stamps = gt_sel[known], est[known], stamps[known]
+                online_sel = online[known] if online is not None else None
         if gt_sel is not None and len(gt_sel) >= 2:
             metrics.update(evaluate(gt_sel, est))
+            if online_sel is not None:
+                metrics["online"] = evaluate(gt_sel, online_sel)
         files = {"trajectory": str(self.out_dir / "trajectory.txt"), "config": str(self.out_dir / "config.yaml")}
+        if online is not None:
+            files["trajectory_online"] = str(self.out_dir / "trajectory_online.txt")
         if self.map is not None:
             ply = self.out_dir / "map.ply"
             # the map lives in the rectified world frame of the VO, which is the world frame: only
@@ -320,6 +342,10 @@ class Pipeline:
         (self.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
         files["metrics"] = str(self.out_dir / "metrics.json")
         if self.logger is not None:
-            self.logger.log_final(self.map, est, gt_sel)
+            edges = None
+            if self.tracker.loops is not None:
+                kf = self.tracker.loops.keyframe_positions
+                edges = [(kf[i], kf[j]) for i, j in self.tracker.loops.graph.loop_edges()]
+            self.logger.log_final(self.map, est, gt_sel, online_poses=online, loop_edges=edges)
         result.metrics = metrics
         result.files = files

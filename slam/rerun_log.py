@@ -51,12 +51,16 @@ W3D = "world/camera/weights/w3d"
 VALID = "world/camera/valid"
 TRAJ_EST = "world/trajectory/estimate"
 TRAJ_GT = "world/trajectory/ground_truth"
+TRAJ_ONLINE = "world/trajectory/as_tracked"
+LOOP_EDGES = "world/trajectory/loop_edges"
 MAP = "world/map"
 METRICS = ("metrics/fps", "metrics/solver_iterations", "metrics/solver_cost",
            "metrics/translation_error_mm", "metrics/failed")
 
 EST_COLOR = (255, 140, 0)
 GT_COLOR = (40, 200, 80)
+ONLINE_COLOR = (160, 160, 160)
+LOOP_COLOR = (230, 40, 200)
 
 # viridis at 9 evenly spaced stops (enough for a smooth linear interpolation)
 _VIRIDIS = np.array([
@@ -377,14 +381,25 @@ class RerunLogger:
         self.rec.log(MAP, rr.Points3D(pos, colors=colors, radii=radii))
 
     # -------------------------------------------------------------------------------- end
-    def log_final(self, map, est_poses: Optional[np.ndarray], gt_poses: Optional[np.ndarray] = None) -> None:
-        """The final map and the full trajectories (at the last frame), then close."""
+    def log_final(self, map, est_poses: Optional[np.ndarray], gt_poses: Optional[np.ndarray] = None,
+                  online_poses: Optional[np.ndarray] = None, loop_edges: Optional[list] = None) -> None:
+        """The final map and the full trajectories (at the last frame), then close. With loop
+        closure ``est_poses`` are the optimised poses, ``online_poses`` those as tracked and
+        ``loop_edges`` the ``(i, j)`` frame pairs each accepted loop edge joins."""
         if self._closed:
             return
         k = self._last_k if self._last_k is not None else max(len(est_poses) - 1 if est_poses is not None else 0, 0)
         self.rec.set_time(TIMELINE, sequence=int(k))
         if map is not None:
             self._log_map(map)
+        if online_poses is not None and len(online_poses):
+            self.rec.log(TRAJ_ONLINE, _strip(np.asarray(online_poses)[:, :3, 3] / 1000.0, ONLINE_COLOR, "as tracked"))
+        if loop_edges and est_poses is not None:
+            at = np.asarray(est_poses, dtype=np.float64)[:, :3, 3] / 1000.0
+            segments = [at[[i, j]].astype(np.float32) for i, j in loop_edges if max(i, j) < len(at)]
+            if segments:
+                self.rec.log(LOOP_EDGES, rr.LineStrips3D(segments, colors=[LOOP_COLOR] * len(segments),
+                                                         radii=rr.Radius.ui_points(1.5)))
         # the per-frame strips already hold the full trajectories when every frame was logged:
         # re-log only what differs, so that per-frame entities keep one entry per frame
         if est_poses is not None and len(est_poses):

@@ -24,6 +24,7 @@ from slam.config import SlamConfig
 from slam.geometric_check import point_to_plane_check
 from slam.cross_check import CrossCheck, Estimate
 from slam.health import HealthMonitor
+from slam.loop_closure import LOOP_MIN_COVERAGE, LoopClosure, LoopEvent
 from vo.camera import StereoCamera
 from vo.odometry import StereoOdometry, TrackResult, View, moved_less_than
 
@@ -60,6 +61,7 @@ class FrameResult:
         covariance: ``(6, 6)`` covariance of the relative pose to the reference (mm and rad,
             translation first, left perturbation), where one is estimated; None otherwise.
         timings: ``(stage, ms)`` of the work done for the frame, in order (a stage may repeat).
+        loop: the loop candidate found at the frame (``graph.loop_closure``), else None.
     """
 
     pose: np.ndarray
@@ -73,6 +75,7 @@ class FrameResult:
     health: dict = field(default_factory=dict)
     covariance: Optional[np.ndarray] = None
     timings: list = field(default_factory=list)
+    loop: Optional[LoopEvent] = None
 
     def time(self, stage: str, since: float) -> None:
         """Record ``stage`` as the time elapsed since ``since`` (``time.perf_counter()``)."""
@@ -210,6 +213,8 @@ class Tracker:
         self.rebuilds = 0           # times the model around the view was rebuilt (REBUILD_AFTER)
         hc = config.health
         self.cross_check = CrossCheck(hc.cross_check, hc.flag_mm) if self.frame2model and hc.cross_check > 0 else None
+        self.closes_loops = self.frame2model and config.graph.loop_closure
+        self.loops: Optional[LoopClosure] = None    # made at the first frame (graph.loop_closure)
 
     # ------------------------------------------------------------------ what may run ahead
     def flows_against_previous_frame(self) -> bool:
@@ -235,6 +240,8 @@ class Tracker:
             result = FrameResult(self.pose, reference="first")
             self._fuse(view, None, self.pose, position, result)
             self._advance(position, view, self.pose, result)
+            if self.closes_loops:
+                self.loops = LoopClosure(self.config.graph, self.pose, position)
             return result
         result = FrameResult(self.pose)
         # the reference: the keyframe, the model view, or the previous frame
@@ -260,6 +267,8 @@ class Tracker:
             result.failed, result.reason = True, track.reason
             self._assess(result, track)
             self.keyframe = None    # the next frame goes against the last tracked one, and becomes the keyframe
+            if self.loops is not None:
+                self.loops.add_frame(position, self.pose, None)
             return result
         if track.failed:            # the model view's estimate failed, the last frame's did not
             self._assess(result, estimate.track)
@@ -287,7 +296,60 @@ class Tracker:
         if not result.flagged:
             self._fuse(view, result.track.w3d, pose, position, result)
         self._advance(position, view, pose, result)
+        if self.loops is not None and self.loops.add_frame(position, pose, result.covariance):
+            self._close_loop(position, view, result)
         return result
+
+    # ------------------------------------------------------------------ loop closure (graph.loop_closure)
+    def _active_from(self, position: int) -> Optional[int]:
+        """The first frame whose surfels are in the active model at ``position`` (None: all)."""
+        return self.loops.active_from(position) if self.loops is not None else None
+
+    def _close_loop(self, position: int, view: View, result: FrameResult) -> None:
+        """At a new graph keyframe: render the inactive model at the frame's pose and, where it
+        covers enough of the frame, register the frame against it, verify and propose the loop
+        (:class:`slam.loop_closure.LoopClosure`). An accepted loop moves the surfels with their
+        frames, corrects the tracker's pose and revives the inactive surfels in view. Timed as
+        ``loop``."""
+        t0 = time.perf_counter()
+        active_from = self.loops.active_from(position)
+        if active_from is None:
+            return
+        K, H, W = self.odometry.K, self.camera.height, self.camera.width
+        T = torch.as_tensor(self.pose, dtype=torch.float32)
+        mv = self.map.render(K, T, H, W, colour=False, seen_before=active_from)
+        coverage = model_coverage(mv.valid, view.valid[0, 0])
+        if coverage < LOOP_MIN_COVERAGE:
+            result.time("loop", t0)
+            return
+        anchor = int(self.map.last_seen_in_view(K, T, H, W, active_from).median())
+        mv.with_colour()
+        ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=view,
+                                             background_matchable=False)
+        reg = self.odometry.track(view, ref)
+        covariance = None
+        if not reg.failed and reg.fit is not None:
+            covariance = reg.fit.covariance(self.config.health.covariance_scale_model)
+        plane = point_to_plane_check(view.depth, view.valid, ref.depth, ref.valid, K, reg.relative)
+        reason = LoopClosure.verify(reg.failed, reg.support, covariance,
+                                    plane.residual_mm if plane is not None else float("nan"))
+        old = list(self.loops.graph.poses)
+        result.loop = self.loops.propose(position, anchor, reg.relative, covariance, reason, coverage)
+        if result.loop.accepted:
+            self.map.move_surfels(torch.as_tensor(self.loops.corrections(old), dtype=torch.float32))
+            self.pose = self.loops.last_pose = self.loops.pose(position)
+            revived, merged = self.map.reactivate_view(K, torch.as_tensor(self.pose, dtype=torch.float32), H, W,
+                                                       position, active_from)
+            log.info("loop closed at frame %d: the pose moved %.2f mm; %d surfels revived, %d merged",
+                     position, result.loop.moved_mm, revived, merged)
+            if self.cross_check is not None:
+                self.cross_check.reset()
+        result.time("loop", t0)
+
+    def optimised_poses(self, positions: range) -> Optional[np.ndarray]:
+        """``(N, 4, 4)`` rectified ``T_wc`` of ``positions`` after the pose graph's optimisations
+        (None without ``graph.loop_closure``)."""
+        return self.loops.optimised_poses(positions) if self.loops is not None else None
 
     # ------------------------------------------------------------------ frame2model's cross-check
     def _estimate_against_last_frame(self, view: View, init: Optional[np.ndarray],
@@ -363,7 +425,7 @@ class Tracker:
         if self.flagged_in_row < REBUILD_AFTER:     # (reached only on a disagreement: it rebuilds at once)
             return
         removed = self.map.forget_view(self.odometry.K, torch.as_tensor(pose, dtype=torch.float32),
-                                       self.camera.height, self.camera.width)
+                                       self.camera.height, self.camera.width, seen_from=self._active_from(self.position))
         log.warning("%d frames flagged in a row: the model around the view is rebuilt (%d surfels removed)",
                     self.flagged_in_row, removed)
         result.flagged = False
@@ -453,8 +515,9 @@ class Tracker:
         return pose, track
 
     def _render(self, pose: np.ndarray, colour: bool):
+        """The active model (all of it without loop closure) rendered at ``pose``."""
         return self.map.render(self.odometry.K, torch.as_tensor(pose, dtype=torch.float32), self.camera.height,
-                               self.camera.width, colour=colour)
+                               self.camera.width, colour=colour, seen_from=self._active_from(self.position + 1))
 
     def _fuse(self, view: View, w3d: Optional[torch.Tensor], pose: np.ndarray, position: int,
               result: FrameResult) -> None:
@@ -467,7 +530,8 @@ class Tracker:
         if w3d is not None and self.learned_fusion_weight:
             weight = normalised_fusion_weight(w3d[0, 0], valid)
         self.map.fuse(view.depth[0, 0], self.exposure.colour(view), self.odometry.K,
-                      torch.as_tensor(pose, dtype=torch.float32), frame_index=position, weight=weight, valid=valid)
+                      torch.as_tensor(pose, dtype=torch.float32), frame_index=position, weight=weight, valid=valid,
+                      active_from=self._active_from(position))
         result.time("fusion", t0)
 
     def _map_at_known_pose(self, position: int, view: View, pose: np.ndarray) -> FrameResult:

@@ -2,11 +2,14 @@
 
     .venv/bin/python tools/benchmark_frame2model.py [--scenarios rigid loop] [--seeds 8001 8002 8003 8004]
         [--frames rigid=150 loop=300] [--size 320x256] [--workers 2] [--out runs/benchmark_f2m]
-        [--methods frame2frame last_frame rendered refined] [--set KEY=VALUE ...]
+        [--methods frame2frame last_frame rendered refined loop_closure] [--appearance SPEC]
+        [--set KEY=VALUE ...]
 
 Each sequence is tracked frame to frame and frame to model with each way of getting the flow
 (``tracking.flow_reference``: against the last real frame or the rendered model colour), and ``refined`` (rendered, plus one refinement pass
-against the model rendered at the first estimate, ``tracking.refine_passes=1``), all with the
+against the model rendered at the first estimate, ``tracking.refine_passes=1``), and
+``loop_closure`` (rendered, with the pose graph and loop closure, ``graph.loop_closure=true``;
+its ATE is that of the optimised trajectory, the poses as tracked are in the JSON), all with the
 same weights. Prints, and writes as markdown and JSON, the ATE-RMSE of every run and the ratio
 frame2model / frame2frame per sequence (the target is at most 0.7), with the mean over
 sequences. Sequences run in parallel worker processes; ``--set`` overrides apply to every run
@@ -25,9 +28,12 @@ import numpy as np
 METHODS = {
     "frame2frame": ["tracking.mode=frame2frame"],
     "last_frame": ["tracking.mode=frame2model", "tracking.flow_reference=last_frame"],
-    "rendered": ["tracking.mode=frame2model", "tracking.flow_reference=rendered"],
-    "refined": ["tracking.mode=frame2model", "tracking.flow_reference=rendered", "tracking.refine_passes=1"],
+    "rendered": ["tracking.mode=frame2model", "tracking.flow_reference=rendered", "graph.loop_closure=false"],
+    "refined": ["tracking.mode=frame2model", "tracking.flow_reference=rendered", "tracking.refine_passes=1",
+                "graph.loop_closure=false"],
+    "loop_closure": ["tracking.mode=frame2model", "tracking.flow_reference=rendered", "graph.loop_closure=true"],
 }
+DEFAULT_METHODS = ["frame2frame", "last_frame", "rendered", "refined"]
 DEFAULT_FRAMES = {"rigid": 150, "loop": 300}
 
 
@@ -46,7 +52,10 @@ def run_one(job: dict) -> dict:
     m = result.metrics
     return {**{k: job[k] for k in ("scenario", "seed", "method")}, "ate_rmse_mm": m["ate_rmse_mm"],
             "rpe_trans_mm": m["rpe_trans_mm"], "fps": m["fps"], "frames": m["frames"], "failed": len(m["failed_frames"]),
-            "model_fallbacks": m.get("model_fallbacks", 0)}
+            "model_fallbacks": m.get("model_fallbacks", 0), "flagged": len(m.get("flagged_frames", [])),
+            "online_ate_rmse_mm": m.get("online", {}).get("ate_rmse_mm"),
+            "loops_accepted": m.get("loop_closure", {}).get("accepted"),
+            "loops_rejected": m.get("loop_closure", {}).get("rejected")}
 
 
 def parse_frames(items: list[str]) -> dict[str, int]:
@@ -93,6 +102,12 @@ def format_table(results: list[dict], methods: list[str]) -> str:
             shares.append(f"{m} {100 * share:.0f} %")
     if shares:
         lines.append("\nframes tracked against the previous frame (model view too empty): " + ", ".join(shares))
+    closing = [r for r in results if r.get("online_ate_rmse_mm") is not None]
+    if closing:
+        lines.append(f"loop closure: mean ATE as tracked {np.mean([r['online_ate_rmse_mm'] for r in closing]):.3f} mm, "
+                     f"optimised {np.mean([r['ate_rmse_mm'] for r in closing]):.3f}; loops accepted "
+                     f"{sum(r['loops_accepted'] for r in closing)}, rejected {sum(r['loops_rejected'] for r in closing)}; "
+                     f"flagged frames {sum(r['flagged'] for r in closing)}")
     return "\n".join(lines)
 
 
@@ -102,7 +117,9 @@ def main() -> None:
     ap.add_argument("--seeds", nargs="+", type=int, default=[8001, 8002, 8003, 8004])
     ap.add_argument("--frames", nargs="*", default=[], help="SCENARIO=N (defaults rigid=150 loop=300)")
     ap.add_argument("--size", default="320x256")
-    ap.add_argument("--methods", nargs="+", default=list(METHODS), choices=list(METHODS))
+    ap.add_argument("--methods", nargs="+", default=DEFAULT_METHODS, choices=list(METHODS))
+    ap.add_argument("--appearance", default=None, metavar="SPEC",
+                    help="generate the sequences with this look (slam synth --appearance; 'random': one per seed)")
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--out", default="runs/benchmark_f2m")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
@@ -112,21 +129,23 @@ def main() -> None:
     w, h = (int(v) for v in args.size.split("x"))
     out = Path(args.out)
     from slam.synth import generate
+    from slam.synth.appearance import appearance_tag, parse_appearance
 
     jobs = []
     for scenario in args.scenarios:
         n = frames.get(scenario, 150)
         for seed in args.seeds:
-            data = out / "data" / f"{scenario}_s{seed}_{args.size}_{n}"
+            data = out / "data" / f"{scenario}_s{seed}_{args.size}_{n}{appearance_tag(args.appearance)}"
             if not (data / "groundtruth.txt").is_file():
-                generate(data, scenario, frames=n, size=(w, h), seed=seed)
+                generate(data, scenario, frames=n, size=(w, h), seed=seed,
+                         appearance=parse_appearance(args.appearance, seed))
             for method in args.methods:
                 jobs.append({"scenario": scenario, "seed": seed, "method": method, "data": str(data),
                              "extra": args.set, "out": str(out / "runs" / f"{scenario}_s{seed}_{method}")})
     with ProcessPoolExecutor(args.workers) as pool:
         results = list(pool.map(run_one, jobs))
     table = format_table(results, args.methods)
-    settings = f"size {args.size}, frames {frames}, overrides {args.set or 'none'}"
+    settings = f"size {args.size}, frames {frames}, look {args.appearance or 'default'}, overrides {args.set or 'none'}"
     print(table)
     print(settings)
     out.mkdir(parents=True, exist_ok=True)
