@@ -7,8 +7,9 @@ The algorithm, per tracked frame (:meth:`LoopClosure.add_frame`):
    tracker's, ``health.covariance_scale_*``) are composed into the edge since the last graph
    keyframe (:func:`slam.pose_graph.compose`, GTSAM's convention).
 2. **Keyframe.** Once the camera has moved ``graph.keyframe_mm`` or turned ``graph.keyframe_deg``
-   from the last graph keyframe, the frame becomes one, joined to it by that edge. Every frame
-   keeps its pose relative to its keyframe, so an optimisation moves it with the keyframe.
+   from the last keyframe candidate, the frame becomes one, joined to the last graph keyframe by
+   that edge. Every frame keeps its pose relative to its keyframe, so an optimisation moves it
+   with the keyframe.
 3. **Detection** (the tracker, at a new keyframe): the *inactive* model (surfels not fused for
    ``graph.inactive_after`` frames, ElasticFusion's split) is rendered at the frame's pose; where
    it covers :data:`LOOP_MIN_COVERAGE` of the frame, the frame is registered against it by the
@@ -21,6 +22,10 @@ The algorithm, per tracked frame (:meth:`LoopClosure.add_frame`):
 5. **Correction.** An accepted loop moves every keyframe; each frame's correction is its
    keyframe's (:meth:`corrections`). The tracker moves the surfels with the frame that last fused
    them, its own pose, and revives the inactive surfels in view.
+6. **Culling** (:meth:`cull`). A new keyframe without a loop edge whose pose an older keyframe
+   already holds (within ``graph.keyframe_mm`` and ``graph.keyframe_deg``) adds nothing: it
+   leaves the graph, its frames go to the keyframe before it and its odometry edge goes on
+   growing. A camera circling the same tissue adds keyframes only where it closes loops.
 
 Poses are ``(4, 4)`` ``T_wc`` of the rectified left camera, mm.
 """
@@ -111,7 +116,9 @@ class LoopClosure:
         self.frames: dict[int, tuple[int, np.ndarray]] = {int(first_position): (0, np.eye(4))}
         self.last_pose = np.asarray(first_pose, dtype=np.float64).copy()
         self._edge = (np.eye(4), np.zeros((6, 6)))    # odometry since the last graph keyframe
+        self._candidate = self.last_pose.copy()         # the pose of the last keyframe candidate
         self.events: list[LoopEvent] = []
+        self.culled = 0
 
     # ------------------------------------------------------------------ steps 1-2
     def add_frame(self, position: int, pose: np.ndarray, covariance: Optional[np.ndarray]) -> bool:
@@ -124,15 +131,37 @@ class LoopClosure:
         self._edge = compose(*self._edge, motion, to_gtsam_covariance(motion, cov))
         self.last_pose = pose.copy()
         k = len(self.graph) - 1
-        since = np.linalg.inv(self.graph.poses[k]) @ pose
-        if (np.linalg.norm(since[:3, 3]) < self.config.keyframe_mm
-                and rotation_deg(since) < self.config.keyframe_deg):
-            self.frames[int(position)] = (k, since)
+        if not self._apart(self._candidate, pose):
+            self.frames[int(position)] = (k, np.linalg.inv(self.graph.poses[k]) @ pose)
             return False
+        self._candidate = pose.copy()
         k = self.graph.add_keyframe(pose, *self._edge)
         self._edge = (np.eye(4), np.zeros((6, 6)))
         self.keyframe_positions.append(int(position))
         self.frames[int(position)] = (k, np.eye(4))
+        return True
+
+    def _apart(self, A: np.ndarray, B: np.ndarray) -> bool:
+        """Whether the poses ``A`` and ``B`` are ``graph.keyframe_mm`` or ``graph.keyframe_deg`` apart."""
+        d = np.linalg.inv(A) @ B
+        return bool(np.linalg.norm(d[:3, 3]) >= self.config.keyframe_mm or rotation_deg(d) >= self.config.keyframe_deg)
+
+    def cull(self, position: int) -> bool:
+        """Step 6, after the loop detection at the new keyframe at ``position``: take it out of
+        the graph if it has no loop edge and an older keyframe (at least
+        :data:`LOOP_MIN_KEYFRAME_GAP` before it) holds its pose; returns whether it was culled."""
+        k = len(self.graph) - 1
+        if k == 0 or self.keyframe_positions[k] != int(position):
+            return False
+        if any(k in edge for edge in self.graph.loop_edges()):
+            return False
+        pose = self.graph.poses[k]
+        if all(self._apart(self.graph.poses[j], pose) for j in range(k - LOOP_MIN_KEYFRAME_GAP + 1)):
+            return False
+        self._edge = self.graph.remove_last_keyframe()
+        self.keyframe_positions.pop()
+        self.frames[int(position)] = (k - 1, np.linalg.inv(self.graph.poses[k - 1]) @ pose)
+        self.culled += 1
         return True
 
     def active_from(self, position: int) -> Optional[int]:
@@ -203,6 +232,13 @@ class LoopClosure:
                 out[p] = out[p - 1]
         return out
 
+    def adopt_optimised(self, position: int) -> np.ndarray:
+        """After an accepted loop at the keyframe frame ``position``: its optimised pose, from
+        which the next frames' motion is taken."""
+        self.last_pose = self.pose(position)
+        self._candidate = self.last_pose.copy()
+        return self.last_pose.copy()
+
     def pose(self, position: int) -> np.ndarray:
         """The current (optimised) ``T_wc`` of the tracked frame at ``position``."""
         k, rel = self.frames[int(position)]
@@ -220,7 +256,7 @@ class LoopClosure:
 
     def summary(self, frames: int, ms_total: float) -> dict:
         """The ``metrics.json`` section: keyframes, loop edges, candidates and the cost per frame."""
-        return {"keyframes": len(self.graph), "loop_edges": len(self.graph.loops),
+        return {"keyframes": len(self.graph), "culled": self.culled, "loop_edges": len(self.graph.loops),
                 "candidates": len(self.events), "accepted": sum(e.accepted for e in self.events),
                 "rejected": sum(not e.accepted for e in self.events),
                 "ms_per_frame": ms_total / max(frames, 1),

@@ -119,6 +119,15 @@ class PoseGraph:
         self.poses.append(np.asarray(pose, dtype=np.float64).copy())
         return len(self.poses) - 1
 
+    def remove_last_keyframe(self) -> tuple[np.ndarray, np.ndarray]:
+        """Take the newest keyframe out of the graph (it must have no loop edge); returns its
+        odometry edge ``(relative, covariance)`` from the keyframe before it."""
+        k = len(self.poses) - 1
+        if k == 0 or any(k in (i, j) for i, j, _, _ in self.loops):
+            raise ValueError(f"keyframe {k} is the first one or has a loop edge: it stays")
+        self.poses.pop()
+        return self.odometry.pop()
+
     def chain_covariance(self, i: int, j: int) -> np.ndarray:
         """The covariance of keyframe ``j`` relative to ``i < j`` along the odometry chain alone
         (GTSAM's convention): the drift the loop may have to undo."""

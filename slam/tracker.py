@@ -298,6 +298,7 @@ class Tracker:
         self._advance(position, view, pose, result)
         if self.loops is not None and self.loops.add_frame(position, pose, result.covariance):
             self._close_loop(position, view, result)
+            self.loops.cull(position)
         return result
 
     # ------------------------------------------------------------------ loop closure (graph.loop_closure)
@@ -337,7 +338,7 @@ class Tracker:
         result.loop = self.loops.propose(position, anchor, reg.relative, covariance, reason, coverage)
         if result.loop.accepted:
             self.map.move_surfels(torch.as_tensor(self.loops.corrections(old), dtype=torch.float32))
-            self.pose = self.loops.last_pose = self.loops.pose(position)
+            self.pose = self.loops.adopt_optimised(position)
             revived, merged = self.map.reactivate_view(K, torch.as_tensor(self.pose, dtype=torch.float32), H, W,
                                                        position, active_from)
             log.info("loop closed at frame %d: the pose moved %.2f mm; %d surfels revived, %d merged",

@@ -116,3 +116,38 @@ def test_loop_outside_the_graph_is_an_error():
     graph = PoseGraph(np.eye(4))
     with pytest.raises(ValueError, match="outside"):
         graph.propose_loop(0, 1, np.eye(4), np.eye(6))
+
+
+def _circle_pose(s: float) -> np.ndarray:
+    """A camera on a 20 mm circle at arc length ``s`` mm, looking along -z with a small wobble."""
+    a = s / 20.0
+    return _pose([0.05 * np.sin(a), 0.05 * np.cos(a), 0.0], [20.0 * np.cos(a), 20.0 * np.sin(a), 0.0])
+
+
+def test_keyframes_culled_on_a_camera_circling_the_same_place():
+    from slam.config import GraphConfig
+    from slam.loop_closure import LoopClosure
+
+    per_lap = 2 * np.pi * 20.0
+    steps = np.arange(0.0, 3 * per_lap, 0.5)        # three laps, 0.5 mm per frame
+    poses = [_circle_pose(s) for s in steps]
+    lc = LoopClosure(GraphConfig(loop_closure=True, keyframe_mm=5.0, keyframe_deg=5.0), poses[0], 0)
+    cov = np.diag([0.01] * 3 + [1e-5] * 3)
+    lap_end = int(per_lap / 0.5)
+    for p in range(1, len(poses)):
+        if lc.add_frame(p, poses[p], cov):
+            lc.cull(p)
+        if p == lap_end:
+            after_one_lap = len(lc.graph)
+    # the second and third laps add (almost) no keyframe: their views are held by the first's
+    assert after_one_lap >= 20
+    assert len(lc.graph) <= after_one_lap + 2
+    assert lc.culled >= 2 * (after_one_lap - 2)
+    # no pose changes without a loop: every frame keeps its tracked pose through the culling
+    got = lc.optimised_poses(range(len(poses)))
+    assert np.abs(got - np.stack(poses)).max() < 1e-9
+    # the odometry chain still composes to the kept keyframes' poses
+    T = lc.graph.poses[0]
+    for (Z, _), expected in zip(lc.graph.odometry, lc.graph.poses[1:]):
+        T = T @ Z
+        assert np.abs(T - expected).max() < 1e-8
