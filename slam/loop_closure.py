@@ -77,6 +77,8 @@ class LoopEvent:
         correction_mm: how far the registration moved the frame from its tracked pose.
         d2: the graph's squared Mahalanobis distance of the edge (nan where not proposed).
         moved_mm: how far the optimisation moved this frame's pose (0 unless accepted).
+        source: where the candidate came from: 'model' (the inactive model rendered at the
+            tracked pose) or 'appearance' (rendered at the pose an ORB match to a keyframe gave).
     """
 
     position: int
@@ -89,6 +91,7 @@ class LoopEvent:
     correction_mm: float = float("nan")
     d2: float = float("nan")
     moved_mm: float = 0.0
+    source: str = "model"
 
     def as_dict(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
@@ -192,20 +195,24 @@ class LoopClosure:
         return ""
 
     def propose(self, position: int, anchor_frame: int, relative: np.ndarray,
-                covariance: Optional[np.ndarray], reason: str = "", coverage: float = float("nan")) -> LoopEvent:
+                covariance: Optional[np.ndarray], reason: str = "", coverage: float = float("nan"),
+                rendered_at: Optional[np.ndarray] = None) -> LoopEvent:
         """A loop candidate at the keyframe frame ``position``: its registration ``relative``
-        (current camera -> the inactive model's view rendered at the frame's pose) with its
-        covariance (left perturbation, translation first), against the surfels last fused at
-        ``anchor_frame``; ``reason``: why verification rejected it ('' where it passed)."""
+        (current camera -> the inactive model's view rendered at ``rendered_at``, ``T_wc``; None:
+        at the frame's tracked pose) with its covariance (left perturbation, translation first),
+        against the surfels last fused at ``anchor_frame``; ``reason``: why verification rejected
+        it ('' where it passed)."""
         i = self.frames[int(position)][0]
         j = self.keyframe_of(anchor_frame)
+        seen_at = self.graph.poses[i] if rendered_at is None else np.asarray(rendered_at, dtype=np.float64)
         event = LoopEvent(int(position), i, j, self.keyframe_positions[j], False, reason, coverage,
-                          float(np.linalg.norm(relative[:3, 3])))
+                          float(np.linalg.norm((np.linalg.inv(self.graph.poses[i]) @ seen_at @ relative)[:3, 3])),
+                          source="model" if rendered_at is None else "appearance")
         if not reason and i - j < LOOP_MIN_KEYFRAME_GAP:
             event.reason = f"the surfels in view are {i - j} keyframe(s) old"
         if not event.reason:
             pose = self.graph.poses[i]
-            measured = np.linalg.inv(self.graph.poses[j]) @ pose @ relative
+            measured = np.linalg.inv(self.graph.poses[j]) @ seen_at @ relative
             outcome = self.graph.propose_loop(j, i, measured, to_gtsam_covariance(relative, covariance))
             event.d2, event.accepted, event.reason = outcome.d2, outcome.accepted, outcome.reason
             if outcome.accepted:

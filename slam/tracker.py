@@ -25,10 +25,17 @@ from slam.geometric_check import point_to_plane_check
 from slam.cross_check import CrossCheck, Estimate
 from slam.health import HealthMonitor
 from slam.loop_closure import LOOP_MIN_COVERAGE, LoopClosure, LoopEvent
+from slam.place_recognition import PlaceRecognition
+
 from vo.camera import StereoCamera
 from vo.odometry import StereoOdometry, TrackResult, View, moved_less_than
 
 log = logging.getLogger("slam")
+
+# frames that could not be read, after which a frame is relocalised before it is tracked (the
+# camera may have moved further than the flow bridges: 20 mm over 40 frames of a synthetic loop
+# left frame2model 11 mm off; 8 mm over 16 frames it bridged)
+RELOCALISE_AFTER_MISSED = 5
 
 # frame2model: frames flagged in a row after which the model around the view is rebuilt (at 25 fps
 # 0.4 s: a short disagreement is a frame's flow, a lasting one the model's own error)
@@ -215,6 +222,7 @@ class Tracker:
         self.cross_check = CrossCheck(hc.cross_check, hc.flag_mm) if self.frame2model and hc.cross_check > 0 else None
         self.closes_loops = self.frame2model and config.graph.loop_closure
         self.loops: Optional[LoopClosure] = None    # made at the first frame (graph.loop_closure)
+        self.places: Optional[PlaceRecognition] = None   # the graph keyframes' ORB features (graph.loop_closure)
 
     # ------------------------------------------------------------------ what may run ahead
     def flows_against_previous_frame(self) -> bool:
@@ -242,8 +250,16 @@ class Tracker:
             self._advance(position, view, self.pose, result)
             if self.closes_loops:
                 self.loops = LoopClosure(self.config.graph, self.pose, position)
+                self.places = PlaceRecognition(self.odometry.K.cpu().numpy(), self.camera.width)
+                self._remember_place(position, view)
             return result
         result = FrameResult(self.pose)
+        missed = position - self.position - 1
+        if self.places is not None and missed >= RELOCALISE_AFTER_MISSED and self._relocalise(position, view, result):
+            result.reference = "relocalised"
+            result.reason = f"relocalised after {missed} frames that could not be read; " + result.reason
+            self.loops.add_frame(position, result.pose, None)
+            return result
         # the reference: the keyframe, the model view, or the previous frame
         ref, ref_pose, result.reference = self._reference(result)
         result.reference_position = self.position
@@ -267,6 +283,8 @@ class Tracker:
             result.failed, result.reason = True, track.reason
             self._assess(result, track)
             self.keyframe = None    # the next frame goes against the last tracked one, and becomes the keyframe
+            if self.places is not None and self._relocalise(position, view, result):
+                result.reason = f"{track.reason}; " + result.reason
             if self.loops is not None:
                 self.loops.add_frame(position, self.pose, None)
             return result
@@ -298,7 +316,8 @@ class Tracker:
         self._advance(position, view, pose, result)
         if self.loops is not None and self.loops.add_frame(position, pose, result.covariance):
             self._close_loop(position, view, result)
-            self.loops.cull(position)
+            if not self.loops.cull(position):
+                self._remember_place(position, view)
         return result
 
     # ------------------------------------------------------------------ loop closure (graph.loop_closure)
@@ -317,9 +336,18 @@ class Tracker:
         if active_from is None:
             return
         K, H, W = self.odometry.K, self.camera.height, self.camera.width
+        rendered_at = None      # the tracked pose; else the pose an appearance match gives
         T = torch.as_tensor(self.pose, dtype=torch.float32)
         mv = self.map.render(K, T, H, W, colour=False, seen_before=active_from)
         coverage = model_coverage(mv.valid, view.valid[0, 0])
+        if coverage < LOOP_MIN_COVERAGE:
+            match = self.places.query(view.gray, None if view.masked is None else ~view.masked,
+                                      [p for p in self.loops.keyframe_positions if p < active_from])
+            if match is not None:
+                rendered_at = self.loops.pose(match.position) @ match.relative
+                T = torch.as_tensor(rendered_at, dtype=torch.float32)
+                mv = self.map.render(K, T, H, W, colour=False, seen_before=active_from)
+                coverage = model_coverage(mv.valid, view.valid[0, 0])
         if coverage < LOOP_MIN_COVERAGE:
             result.time("loop", t0)
             return
@@ -335,7 +363,7 @@ class Tracker:
         reason = LoopClosure.verify(reg.failed, reg.support, covariance,
                                     plane.residual_mm if plane is not None else float("nan"))
         old = list(self.loops.graph.poses)
-        result.loop = self.loops.propose(position, anchor, reg.relative, covariance, reason, coverage)
+        result.loop = self.loops.propose(position, anchor, reg.relative, covariance, reason, coverage, rendered_at)
         if result.loop.accepted:
             self.map.move_surfels(torch.as_tensor(self.loops.corrections(old), dtype=torch.float32))
             self.pose = self.loops.adopt_optimised(position)
@@ -346,6 +374,50 @@ class Tracker:
             if self.cross_check is not None:
                 self.cross_check.reset()
         result.time("loop", t0)
+
+    def _relocalise(self, position: int, view: View, result: FrameResult) -> bool:
+        """Relocalise the frame at ``position`` (after a frame that could not be tracked, or
+        frames that could not be read): find the graph keyframe it looks like (ORB,
+        :class:`slam.place_recognition.PlaceRecognition`), render the whole model at the pose
+        that gives and register the frame against it. Where the registration passes the loop's
+        verification the frame takes that pose (``result.pose``, its ``reason`` says so) and
+        becomes the last frame, the one the next is tracked from; it is not fused, and its
+        motion enters the pose graph as unknown. Returns whether it was relocalised. Timed as
+        ``relocalise``."""
+        t0 = time.perf_counter()
+        match = self.places.query(view.gray, None if view.masked is None else ~view.masked, self.loops.keyframe_positions)
+        if match is None:
+            result.time("relocalise", t0)
+            return False
+        K, H, W = self.odometry.K, self.camera.height, self.camera.width
+        guess = self.loops.pose(match.position) @ match.relative
+        mv = self.map.render(K, torch.as_tensor(guess, dtype=torch.float32), H, W, colour=True)
+        if model_coverage(mv.valid, view.valid[0, 0]) < LOOP_MIN_COVERAGE:
+            result.time("relocalise", t0)
+            return False
+        ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=view, background_matchable=False)
+        reg = self.odometry.track(view, ref)
+        covariance = None if reg.failed or reg.fit is None else reg.fit.covariance(self.config.health.covariance_scale_model)
+        plane = point_to_plane_check(view.depth, view.valid, ref.depth, ref.valid, K, reg.relative)
+        if LoopClosure.verify(reg.failed, reg.support, covariance, plane.residual_mm if plane is not None else float("nan")):
+            result.time("relocalise", t0)
+            return False
+        moved = float(np.linalg.norm((guess @ reg.relative)[:3, 3] - self.pose[:3, 3]))
+        result.pose = guess @ reg.relative
+        result.reason = f"relocalised against the keyframe at frame {match.position} ({moved:.1f} mm from the last pose)"
+        self.velocity = np.eye(4)
+        self._advance(position, view, result.pose, result)
+        if self.cross_check is not None:
+            self.cross_check.reset()
+        log.info("frame %d relocalised against the keyframe at frame %d: %.2f mm from the last pose",
+                 position, match.position, moved)
+        result.time("relocalise", t0)
+        return True
+
+    def _remember_place(self, position: int, view: View) -> None:
+        """Keep the ORB features of the new graph keyframe at ``position`` (appearance candidates)."""
+        valid = view.valid[0, 0].cpu().numpy()
+        self.places.add(position, view.gray, view.depth[0, 0].cpu().numpy(), valid)
 
     def optimised_poses(self, positions: range) -> Optional[np.ndarray]:
         """``(N, 4, 4)`` rectified ``T_wc`` of ``positions`` after the pose graph's optimisations
