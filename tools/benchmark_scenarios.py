@@ -91,7 +91,7 @@ class WeightStats:
                     self.sums[prefix + split + key][0] += float(w[sel].sum())
                     self.sums[prefix + split + key][1] += int(sel.sum())
 
-    def log_final(self, *args):
+    def log_final(self, *args, **kwargs):
         pass
 
     def means(self) -> dict:
