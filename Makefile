@@ -17,4 +17,4 @@ demo: $(STAMP)
 	$(VENV)/bin/slam run runs/demo_data --mode frame2model --out runs/demo
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadfile
