@@ -14,7 +14,11 @@ The algorithm, per tracked frame (:meth:`LoopClosure.add_frame`):
    ``graph.inactive_after`` frames, ElasticFusion's split) is rendered at the frame's pose; where
    it covers :data:`LOOP_MIN_COVERAGE` of the frame, the frame is registered against it by the
    same dense tracker (:meth:`verify` checks the result: support, positional spread, the depth's
-   fit to the rendered surface).
+   fit to the rendered surface). Where the inactive model covers less (the drift took the
+   tracked pose away from the old tissue), an *appearance* candidate: the frame's ORB features
+   matched to an inactive keyframe's (:mod:`slam.place_recognition`) give a pose by PnP, the
+   inactive model is rendered there and the frame registered and verified the same way. The
+   same match relocalises a lost camera (the tracker's ``_relocalise``).
 4. **Loop edge.** The registration says where the camera is in the inactive model's frame; the
    edge joins the keyframe that last fused the surfels in view (the median frame) and this one
    (:meth:`propose`), and the pose graph gates and optimises it

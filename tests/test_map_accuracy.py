@@ -14,19 +14,8 @@ import pytest
 
 from slam.cli import main
 from slam.datasets import open_dataset
+from slam.map_error import depth_errors_mm as map_depth_errors
 from slam.tum import read_tum
-
-
-def bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``img`` ``(H, W)`` sampled at ``(M,)`` sub-pixel positions; NaN where a corner has no depth."""
-    u0 = np.clip(np.floor(u).astype(int), 0, img.shape[1] - 2)
-    v0 = np.clip(np.floor(v).astype(int), 0, img.shape[0] - 2)
-    a, b = u - u0, v - v0
-    corners = np.stack([img[v0, u0], img[v0, u0 + 1], img[v0 + 1, u0], img[v0 + 1, u0 + 1]])
-    weights = np.stack([(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b])
-    out = (corners * weights).sum(0)
-    out[(corners <= 0).any(0)] = np.nan
-    return out
 
 
 def depth_errors_mm(ply, data, frame_ids) -> np.ndarray:
@@ -39,23 +28,8 @@ def depth_errors_mm(ply, data, frame_ids) -> np.ndarray:
     K, R1 = ds.camera.K, ds.R1
     errors = []
     for i in frame_ids:
-        frame = ds.frame(i)
-        T_wc = ds.gt_poses[i]
-        # world -> original left camera -> rectified left camera (R1), as the pipeline's convention
-        X = (pts_mm - T_wc[:3, 3]) @ T_wc[:3, :3]
-        X = X @ R1.T
-        z = X[:, 2]
-        front = z > 1.0
-        uv = X[front] @ K.T
-        u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
-        h, w = frame.gt_depth.shape
-        inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-        gt = bilinear(frame.gt_depth, u[inside], v[inside])
-        zc = z[front][inside]
-        seen = np.isfinite(gt) & (gt > 0)
-        # a point far behind the visible surface is occluded in this frame, not an error of it
-        err = zc[seen] - gt[seen]
-        errors.append(np.abs(err[err < 5.0]))
+        _, err = map_depth_errors(pts_mm, ds.gt_poses[i], K, R1, ds.frame(i).gt_depth)
+        errors.append(np.abs(err))
     return np.concatenate(errors)
 
 
