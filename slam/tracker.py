@@ -26,7 +26,6 @@ from slam.cross_check import CrossCheck, Estimate
 from slam.health import HealthMonitor
 from slam.loop_closure import LOOP_MIN_COVERAGE, LoopClosure, LoopEvent
 from slam.place_recognition import PlaceRecognition
-
 from vo.camera import StereoCamera
 from vo.odometry import StereoOdometry, TrackResult, View, moved_less_than
 
@@ -341,8 +340,7 @@ class Tracker:
         mv = self.map.render(K, T, H, W, colour=False, seen_before=active_from)
         coverage = model_coverage(mv.valid, view.valid[0, 0])
         if coverage < LOOP_MIN_COVERAGE:
-            match = self.places.query(view.gray, None if view.masked is None else ~view.masked,
-                                      [p for p in self.loops.keyframe_positions if p < active_from])
+            match = self._look_up_place(view, [p for p in self.loops.keyframe_positions if p < active_from])
             if match is not None:
                 rendered_at = self.loops.pose(match.position) @ match.relative
                 T = torch.as_tensor(rendered_at, dtype=torch.float32)
@@ -353,15 +351,7 @@ class Tracker:
             return
         anchor = int(self.map.last_seen_in_view(K, T, H, W, active_from).median())
         mv.with_colour()
-        ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=view,
-                                             background_matchable=False)
-        reg = self.odometry.track(view, ref)
-        covariance = None
-        if not reg.failed and reg.fit is not None:
-            covariance = reg.fit.covariance(self.config.health.covariance_scale_model)
-        plane = point_to_plane_check(view.depth, view.valid, ref.depth, ref.valid, K, reg.relative)
-        reason = LoopClosure.verify(reg.failed, reg.support, covariance,
-                                    plane.residual_mm if plane is not None else float("nan"))
+        reg, covariance, reason = self._register_to_model(view, mv)
         old = list(self.loops.graph.poses)
         result.loop = self.loops.propose(position, anchor, reg.relative, covariance, reason, coverage, rendered_at)
         if result.loop.accepted:
@@ -385,7 +375,7 @@ class Tracker:
         motion enters the pose graph as unknown. Returns whether it was relocalised. Timed as
         ``relocalise``."""
         t0 = time.perf_counter()
-        match = self.places.query(view.gray, None if view.masked is None else ~view.masked, self.loops.keyframe_positions)
+        match = self._look_up_place(view, self.loops.keyframe_positions)
         if match is None:
             result.time("relocalise", t0)
             return False
@@ -395,11 +385,8 @@ class Tracker:
         if model_coverage(mv.valid, view.valid[0, 0]) < LOOP_MIN_COVERAGE:
             result.time("relocalise", t0)
             return False
-        ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=view, background_matchable=False)
-        reg = self.odometry.track(view, ref)
-        covariance = None if reg.failed or reg.fit is None else reg.fit.covariance(self.config.health.covariance_scale_model)
-        plane = point_to_plane_check(view.depth, view.valid, ref.depth, ref.valid, K, reg.relative)
-        if LoopClosure.verify(reg.failed, reg.support, covariance, plane.residual_mm if plane is not None else float("nan")):
+        reg, _, reason = self._register_to_model(view, mv)
+        if reason:
             result.time("relocalise", t0)
             return False
         moved = float(np.linalg.norm((guess @ reg.relative)[:3, 3] - self.pose[:3, 3]))
@@ -413,6 +400,26 @@ class Tracker:
                  position, match.position, moved)
         result.time("relocalise", t0)
         return True
+
+    def _register_to_model(self, view: View, mv) -> tuple[TrackResult, Optional[np.ndarray], str]:
+        """Register ``view`` against the model view ``mv`` (rendered with colour) by the dense
+        tracker and verify it as a loop: the registration, its calibrated covariance (None where
+        it failed) and why it is not a loop ('' where it is one, :meth:`LoopClosure.verify`)."""
+        ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=view,
+                                             background_matchable=False)
+        reg = self.odometry.track(view, ref)
+        covariance = None
+        if not reg.failed and reg.fit is not None:
+            covariance = reg.fit.covariance(self.config.health.covariance_scale_model)
+        plane = point_to_plane_check(view.depth, view.valid, ref.depth, ref.valid, self.odometry.K, reg.relative)
+        reason = LoopClosure.verify(reg.failed, reg.support, covariance,
+                                    plane.residual_mm if plane is not None else float("nan"))
+        return reg, covariance, reason
+
+    def _look_up_place(self, view: View, candidates: list[int]):
+        """The keyframe among ``candidates`` that ``view`` looks like, by ORB (an
+        :class:`slam.place_recognition.AppearanceMatch`, None where none is)."""
+        return self.places.query(view.gray, None if view.masked is None else ~view.masked, candidates)
 
     def _remember_place(self, position: int, view: View) -> None:
         """Keep the ORB features of the new graph keyframe at ``position`` (appearance candidates)."""
