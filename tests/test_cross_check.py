@@ -44,7 +44,7 @@ def _run(data, tmp_path, name, cross_check: float, corrupt: range | None = None,
     odo, tracker = pipe.odometry, pipe.tracker
     flow, track = odo.correspondences, tracker.track
 
-    def corrupted(cur, against, round_trip=True):
+    def corrupted(cur, against, round_trip=None):
         corr = flow(cur, against, round_trip)
         if corrupt is not None and against.from_model and tracker.position + 1 in corrupt:
             shifted = corr.flow.clone()

@@ -77,6 +77,20 @@ def test_weighted_median():
     assert math.isnan(weighted_median(v, torch.zeros(4)))
 
 
+def test_weighted_median_of_many_values_is_the_sorted_one():
+    # above MEDIAN_SORT_MAX values the median is narrowed down by histogram passes: the same element
+    rng = np.random.default_rng(3)
+    for n, draw in [(50_000, lambda n: rng.exponential(size=n)), (300_000, lambda n: rng.standard_cauchy(n)),
+                    (100_000, lambda n: rng.integers(0, 4, n))]:
+        v = torch.tensor(np.asarray(draw(n), dtype=np.float32))
+        w = torch.tensor((rng.random(n) * (rng.random(n) > 0.3)).astype(np.float32))
+        keep = w.numpy() > 0
+        vs, ws = v.numpy()[keep], w.numpy()[keep]
+        order = np.argsort(vs, kind="stable")
+        cw = np.cumsum(ws[order], dtype=np.float64)
+        assert weighted_median(v, w) == vs[order][np.searchsorted(cw, 0.5 * cw[-1])]
+
+
 def _track(r2: float, r3: float, failed: bool = False) -> TrackResult:
     fit = PoseFit(residual_2d_px=r2, residual_3d_mm=r3, hessian=np.eye(6) * 4.0, sigma2=2.0)
     z = torch.zeros(1, 1, 2, 2)
@@ -121,7 +135,8 @@ def test_a_run_writes_tracking_csv_and_its_summary(tmp_path):
     from slam.tracking_csv import COLUMNS, read_tracking_csv
 
     data = generate(tmp_path / "seq", "rigid", frames=8, size=(96, 80), seed=9601)
-    cfg = load_config(None, ["tracking.mode=frame2model", "logging.progress=false", "threads=1"])
+    cfg = load_config(None, ["tracking.mode=frame2model", "logging.progress=false", "threads=1",
+                             "correspondence.round_trip=true"])
     res = run_from_config(data, cfg, tmp_path / "run", print_summary=False)
     rows = read_tracking_csv(tmp_path / "run" / "tracking.csv")
     assert list(rows) == list(COLUMNS) and len(rows["frame"]) == 8

@@ -35,17 +35,38 @@ class PoseFit(NamedTuple):
         return scale * self.sigma2 * np.linalg.pinv(self.hessian)
 
 
+# weighted_median sorts at most this many values: above it, a weighted histogram narrows the
+# values down to the bin that holds the half weight (each pass O(n), the result the same element)
+MEDIAN_SORT_MAX = 4096
+MEDIAN_BINS = 1024
+
+
 def weighted_median(values: torch.Tensor, weights: torch.Tensor) -> float:
-    """The median of ``values`` ``(N,)`` under non-negative ``weights`` ``(N,)`` (nan when they sum to 0)."""
+    """The median of ``values`` ``(N,)`` under non-negative ``weights`` ``(N,)`` (nan when they sum
+    to 0): the smallest value whose cumulative weight in ascending order reaches half the total.
+    Linear in ``N`` (a full sort of a 640x512 frame's values cost 12 ms a figure)."""
     v = values.detach().cpu().numpy().astype(np.float32, copy=False)
     w = weights.detach().cpu().numpy()
     keep = w > 0
     if not keep.any():
         return float("nan")
     v, w = v[keep], w[keep]
+    half = 0.5 * float(w.sum(dtype=np.float64))
+    if np.isfinite(v).all():
+        while v.size > MEDIAN_SORT_MAX:
+            lo, hi = float(v.min()), float(v.max())
+            if lo == hi:
+                return lo
+            bins = np.minimum(((v - np.float32(lo)) * np.float32(MEDIAN_BINS / (hi - lo))).astype(np.intp), MEDIAN_BINS - 1)
+            cw = np.cumsum(np.bincount(bins, w, MEDIAN_BINS))
+            b = min(int(np.searchsorted(cw, half)), MEDIAN_BINS - 1)
+            if b > 0:
+                half -= float(cw[b - 1])
+            inside = bins == b
+            v, w = v[inside], w[inside]
     order = np.argsort(v, kind="stable")
     cw = np.cumsum(w[order], dtype=np.float64)
-    i = int(np.searchsorted(cw, 0.5 * cw[-1]))
+    i = int(np.searchsorted(cw, half))
     return float(v[order][min(i, v.size - 1)])
 
 

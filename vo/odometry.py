@@ -356,16 +356,18 @@ class StereoOdometry:
                            fit=None if reason else fit, support=n_valid / n_cur if n_cur else 0.0,
                            round_trip_px=fb)
 
-    def correspondences(self, cur: View, against: View, round_trip: bool = True) -> Correspondences:
+    def correspondences(self, cur: View, against: View, round_trip: bool | None = None) -> Correspondences:
         """Step 1: the temporal flow ``cur -> against`` (against the real view whose pixels
         ``against`` shows, if any): the one :meth:`flow_ahead` kept on ``cur`` when it goes against
-        that view, else computed now; with ``round_trip`` its forward-backward disagreement (the
-        flow the pose is solved on: a health figure), else the flow back only for
-        ``correspondence.fb_check_px``."""
+        that view, else computed now; with ``round_trip`` (None: ``correspondence.round_trip``)
+        its forward-backward disagreement (the flow the pose is solved on: a health figure), else
+        the flow back only for ``correspondence.fb_check_px``."""
         against = against.image_of if against.image_of is not None else against
         ahead = cur.flow_ahead
         if ahead is not None and ahead[0]() is against:
             return ahead[1]
+        if round_trip is None:
+            round_trip = self.config.correspondence.round_trip
         return self._pair_flow(self.temporal_flow, cur, against, round_trip)
 
     def filters_depth(self) -> bool:
@@ -495,7 +497,7 @@ class StereoOdometry:
                                              need_image=not isinstance(self.temporal_flow, DisFlow))
         return view.flow_input
 
-    def _pair_flow(self, estimator, cur: View, against: View, round_trip: bool = True) -> Correspondences:
+    def _pair_flow(self, estimator, cur: View, against: View, round_trip: bool = False) -> Correspondences:
         """The temporal flow ``cur -> against``; with ``round_trip`` or ``correspondence.fb_check_px``
         the flow back and their round-trip disagreement (a health figure) and, with the check, the
         ``(1, 1, H, W)`` bool mask of flows that passed it (else None)."""
@@ -524,7 +526,8 @@ class StereoOdometry:
             raise ValueError("flow_ahead: only between real frames")
         if self._ahead_flow_estimator is None:
             self._ahead_flow_estimator = make_flow_estimators(self.config.correspondence, self.device)[0]
-        cur.flow_ahead = (weakref.ref(against), self._pair_flow(self._ahead_flow_estimator, cur, against))
+        cur.flow_ahead = (weakref.ref(against), self._pair_flow(self._ahead_flow_estimator, cur, against,
+                                                                self.config.correspondence.round_trip))
 
 
 def moved_less_than(relative: np.ndarray, still_mm: float) -> bool:
