@@ -16,8 +16,6 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-import torch.nn.functional as F
-
 from vo.geometry import backproject, project
 
 MAX_GAP_MM = 3.0            # an association farther apart along the view ray is an occlusion
@@ -39,23 +37,6 @@ class PlaneCheck(NamedTuple):
     points: int
 
 
-def normals_of(points: torch.Tensor, valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Unit normals ``(1, 3, H, W)`` of an organised point map ``(1, 3, H, W)`` from central
-    differences, facing the camera, and where they exist (``(1, 1, H, W)`` bool: the four
-    neighbours valid)."""
-    du = points[..., 1:-1, 2:] - points[..., 1:-1, :-2]
-    dv = points[..., 2:, 1:-1] - points[..., :-2, 1:-1]
-    n = torch.cross(du, dv, dim=1)
-    n = n / (n[:, 0:1] ** 2 + n[:, 1:2] ** 2 + n[:, 2:3] ** 2).sqrt().clamp(min=1e-12)
-    n = torch.where((n * points[..., 1:-1, 1:-1]).sum(1, keepdim=True) > 0, -n, n)
-    ok = valid[..., 1:-1, 2:] & valid[..., 1:-1, :-2] & valid[..., 2:, 1:-1] & valid[..., :-2, 1:-1]
-    normals = torch.zeros_like(points)
-    normals[..., 1:-1, 1:-1] = n
-    has = torch.zeros_like(valid)
-    has[..., 1:-1, 1:-1] = ok & valid[..., 1:-1, 1:-1]
-    return normals, has
-
-
 def point_to_plane_check(cur_depth: torch.Tensor, cur_valid: torch.Tensor, ref_depth: torch.Tensor,
                          ref_valid: torch.Tensor, K: torch.Tensor, relative: np.ndarray) -> PlaneCheck | None:
     """The :class:`PlaneCheck` of the ``(4, 4)`` mm pose ``relative`` (current camera ->
@@ -63,25 +44,34 @@ def point_to_plane_check(cur_depth: torch.Tensor, cur_valid: torch.Tensor, ref_d
     fewer than 100 points associate."""
     T = torch.as_tensor(relative, dtype=torch.float32, device=cur_depth.device)
     H, W = ref_depth.shape[-2:]
-    # the frame's points on every STRIDE-th pixel of every STRIDE-th row, in the reference camera
+    # the frame's valid points on every STRIDE-th pixel of every STRIDE-th row, in the reference camera
     Ks = K.clone()
     Ks[:2] /= STRIDE            # pixel (STRIDE i, STRIDE j) of the full view is (i, j) here
     d = cur_depth[..., ::STRIDE, ::STRIDE]
-    P = backproject(d, Ks)
-    Y = (T[:3, :3] @ P.flatten(2) + T[:3, 3:4]).view_as(P)
-    uv = project(Y, K)
-    grid = torch.stack([2.0 * uv[:, 0] / (W - 1) - 1.0, 2.0 * uv[:, 1] / (H - 1) - 1.0], -1)
-    Q = backproject(ref_depth, K)
-    normals, has_normal = normals_of(Q, ref_valid)
-    both = F.grid_sample(torch.cat([Q, normals, has_normal.to(Q.dtype)], 1), grid, mode="nearest",
-                         padding_mode="zeros", align_corners=True)
-    q, n, has = both[:, :3], both[:, 3:6], both[:, 6:7] > 0.5
-    ok = cur_valid[..., ::STRIDE, ::STRIDE] & (d > 0) & has & (Y[:, 2:3] > 0)
-    ok &= (Y[:, 2:3] - q[:, 2:3]).abs() < MAX_GAP_MM
-    m = ok[0, 0]
+    keep = (cur_valid[..., ::STRIDE, ::STRIDE] & (d > 0)).flatten()
+    P = backproject(d, Ks).flatten(2)[0][:, keep]                                   # (3, M)
+    Y = T[:3, :3] @ P + T[:3, 3:4]
+    uv = project(Y[None], K)[0]
+    # the reference's point and normal (central differences, facing the camera, where the four
+    # neighbours are valid) at each projection's nearest pixel, computed there only
+    ix, iy = uv[0].round(), uv[1].round()
+    inside = (ix >= 1) & (ix <= W - 2) & (iy >= 1) & (iy <= H - 2) & (Y[2] > 0)
+    at = (iy[inside] * W + ix[inside]).long()
+    Y = Y[:, inside]
+    Q = backproject(ref_depth, K)[0].flatten(1)                                    # (3, H W)
+    rv = ref_valid.flatten()
+
+    def gather(offset: int) -> torch.Tensor:
+        return Q.index_select(1, at + offset)
+
+    q = gather(0)
+    n = torch.cross(gather(1) - gather(-1), gather(W) - gather(-W), dim=0)
+    n = n / (n[0:1] ** 2 + n[1:2] ** 2 + n[2:3] ** 2).sqrt().clamp(min=1e-12)
+    n = torch.where((n * q).sum(0, keepdim=True) > 0, -n, n)
+    m = rv[at] & rv[at + 1] & rv[at - 1] & rv[at + W] & rv[at - W] & ((Y[2] - q[2]).abs() < MAX_GAP_MM)
     if int(m.sum()) < 100:
         return None
-    y, q, n = Y[0][:, m].double(), q[0][:, m].double(), n[0][:, m].double()      # (3, N)
+    y, q, n = Y[:, m].double(), q[:, m].double(), n[:, m].double()                 # (3, N)
     r = (n * (y - q)).sum(0)
     J = torch.cat([n, torch.cross(y, n, dim=0)], 0)                                 # (6, N), left perturbation
     Hm = J @ J.T
