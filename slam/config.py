@@ -214,6 +214,7 @@ CHOICES = {
     "correspondence.backend": ("dis", "raft"),
     "correspondence.dis_preset": ("ultrafast", "fast", "medium"),
     "correspondence.dis_stereo_preset": ("ultrafast", "fast", "medium"),
+    "correspondence.dis_lr_check_preset": ("ultrafast", "fast", "medium"),
     "depth.source": ("stereo", "groundtruth"),
     "solver.method": ("lm", "gauss_newton", "lbfgs"),
     "solver.init": ("identity", "constant_velocity"),

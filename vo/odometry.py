@@ -29,7 +29,7 @@ import torch
 
 from vo.camera import StereoCamera
 from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
-from vo.correspondence import make_flow_estimators
+from vo.correspondence import make_flow_estimators, make_lr_check_flow
 from vo.correspondence.dis import DisFlow, to_gray_u8
 from vo.depth import (depth_from_parallax, filter_depth_along_flow, flow_consistency, parallax_from_depth,
                       round_trip_error, vertical_parallax_ok)
@@ -199,6 +199,7 @@ class StereoOdometry:
         self.device = torch.device(device)
         self.K = camera.K_tensor(self.device)
         self.temporal_flow, self.stereo_flow = make_flow_estimators(config.correspondence, device)
+        self.lr_check_flow = make_lr_check_flow(config.correspondence, self.stereo_flow)
         self.networks: TrackingNetworks | None = None
         wcfg, dcfg = config.weights, config.depth
         if wcfg.mode == "learned":
@@ -261,7 +262,7 @@ class StereoOdometry:
             if ccfg.max_vertical_parallax_px > 0:
                 valid &= vertical_parallax_ok(parallax, ccfg.max_vertical_parallax_px)
             if ccfg.lr_check_px > 0:
-                back = self._flow(self.stereo_flow, *st_r, *st_l)
+                back = self._flow(self.lr_check_flow, *st_r, *st_l)
                 valid &= flow_consistency(parallax, back, ccfg.lr_check_px)
             depth = torch.where(valid, depth, torch.zeros_like(depth))
         if timings is not None:
@@ -447,11 +448,10 @@ class StereoOdometry:
         s2, s3 = PoseProblem.scales(*problem.target.shape[-2:])
         prob = PoseProblem(points_cur=points_cur.flatten(2), target_px=problem.target.flatten(2),
                            points_ref=problem.points_ref.flatten(2), w2d=w2d.flatten(1), w3d=w3d.flatten(1),
-                           K=self.K[None], s2=s2, s3=s3).compact()
-        n_valid = int(prob.w2d.shape[1])
+                           K=self.K[None], s2=s2, s3=s3)
+        prob, n_valid = prob.compact(scfg.max_pixels)
         if n_valid < scfg.min_valid_pixels:
             return None, n_valid, None
-        prob = prob.subsample(scfg.max_pixels)
         T0 = None
         if init is not None:
             T0 = torch.as_tensor(init, dtype=torch.float32, device=self.device).clone()

@@ -56,35 +56,22 @@ class PoseProblem:
     def with_weights(self, w2d: torch.Tensor, w3d: torch.Tensor) -> "PoseProblem":
         return replace(self, w2d=w2d, w3d=w3d)
 
-    def compact(self) -> "PoseProblem":
-        """Drop the columns whose weights are zero in every batch element (saves work at inference)."""
-        keep = ((self.w2d > 0) | (self.w3d > 0)).any(0)
-        idx = keep.nonzero().squeeze(1)
-        return replace(
-            self,
-            points_cur=self.points_cur[:, :, idx],
-            target_px=self.target_px[:, :, idx],
-            points_ref=self.points_ref[:, :, idx],
-            w2d=self.w2d[:, idx],
-            w3d=self.w3d[:, idx],
-        )
-
-    def subsample(self, max_pixels: int) -> "PoseProblem":
-        """Keep at most ``max_pixels`` columns, evenly spaced (deterministic). The weighted sums
-        are rescaled by ``N / kept`` so the objective keeps its magnitude."""
-        n = self.w2d.shape[1]
-        if max_pixels <= 0 or n <= max_pixels:
-            return self
-        idx = torch.linspace(0, n - 1, max_pixels, device=self.w2d.device).round().long()
-        scale = n / float(max_pixels)
-        return replace(
-            self,
-            points_cur=self.points_cur[:, :, idx],
-            target_px=self.target_px[:, :, idx],
-            points_ref=self.points_ref[:, :, idx],
-            w2d=self.w2d[:, idx] * scale,
-            w3d=self.w3d[:, idx] * scale,
-        )
+    def compact(self, max_pixels: int = 0) -> tuple["PoseProblem", int]:
+        """Drop the columns whose weights are zero in every batch element (saves work at
+        inference) and, with ``max_pixels`` > 0, keep at most that many of the rest, evenly
+        spaced (deterministic), with the weights rescaled by ``N / kept`` so that the objective
+        keeps its magnitude. One gather; returns the problem and ``N``, the weighted columns."""
+        idx = ((self.w2d > 0) | (self.w3d > 0)).any(0).nonzero().squeeze(1)
+        n = int(idx.numel())
+        scale = 1.0
+        if 0 < max_pixels < n:
+            idx = idx[torch.linspace(0, n - 1, max_pixels, device=idx.device).round().long()]
+            scale = n / float(max_pixels)
+        w2d, w3d = self.w2d[:, idx], self.w3d[:, idx]
+        if scale != 1.0:
+            w2d, w3d = w2d * scale, w3d * scale
+        return replace(self, points_cur=self.points_cur[:, :, idx], target_px=self.target_px[:, :, idx],
+                       points_ref=self.points_ref[:, :, idx], w2d=w2d, w3d=w3d), n
 
     def to(self, dtype: torch.dtype) -> "PoseProblem":
         return replace(

@@ -19,4 +19,12 @@ def make_flow_estimators(config: CorrespondenceConfig, device: str = "cpu") -> t
     raise ValueError(f"unknown correspondence.backend '{config.backend}' (dis, raft)")
 
 
-__all__ = ["FlowEstimator", "DisFlow", "make_flow_estimators"]
+def make_lr_check_flow(config: CorrespondenceConfig, stereo: FlowEstimator) -> FlowEstimator:
+    """The estimator of the left-right check's flow back: DIS at ``dis_lr_check_preset`` (the
+    stereo estimator itself where that is its preset, and with RAFT)."""
+    if config.backend == "dis" and config.dis_lr_check_preset != config.dis_stereo_preset:
+        return DisFlow(config.dis_lr_check_preset, exposure=config.dis_match_exposure)
+    return stereo
+
+
+__all__ = ["FlowEstimator", "DisFlow", "make_flow_estimators", "make_lr_check_flow"]
