@@ -218,6 +218,7 @@ CHOICES = {
     "depth.source": ("stereo", "groundtruth"),
     "solver.method": ("lm", "gauss_newton", "lbfgs"),
     "solver.init": ("identity", "constant_velocity"),
+    "solver.kernel": ("auto", "compiled", "torch"),
     "weights.mode": ("learned", "constant"),
     "weights.residuals": ("2d3d", "2d", "3d"),
     "tracking.mode": ("frame2frame", "frame2model"),

@@ -127,6 +127,10 @@ class SolverConfig:
             camera frame (frame2frame, and frame2model's fallback to the last frame); not against
             a model view, whose fused depth carries few of the outliers the step is for (there it
             changed the ATE by 1 % for 20-35 % more frame time; docs/experiments.md).
+        kernel: the LM normal equations: ``auto`` (the compiled numba loop for a problem on the
+            CPU, torch's vectorised code on any other device), ``compiled`` or ``torch``
+            (:class:`vo.solver.Tolerance`; ``tools/check_gpu.py`` forces ``torch`` on the CPU
+            to run the code a GPU runs).
     """
 
     method: str = "lm"
@@ -137,6 +141,7 @@ class SolverConfig:
     init: str = "identity"
     max_pixels: int = 16384
     robust_3d_mm: float = 0.5
+    kernel: str = "auto"
 
 
 @dataclass

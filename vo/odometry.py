@@ -37,7 +37,7 @@ from vo.geometry import backproject, flow_grid, lands_inside, pixel_grid, sample
 from vo.health import PoseFit, pose_fit, weighted_median
 from vo.lie import rotation_angle_deg
 from vo.residuals import PoseProblem, residuals
-from vo.solver import SolverResult, solve_pose
+from vo.solver import SolverResult, Tolerance, solve_pose
 from vo.weights import TrackingNetworks, WeightInputs, constant_weights, load_tracking_networks
 
 log = logging.getLogger(__name__)
@@ -457,10 +457,11 @@ class StereoOdometry:
             T0 = torch.as_tensor(init, dtype=torch.float32, device=self.device).clone()
             T0[:3, 3] /= dmax
             T0 = T0[None]
-        result = solve_pose(prob, scfg, T0)
+        tol = Tolerance(kernel=scfg.kernel)
+        result = solve_pose(prob, scfg, T0, tol=tol)
         if robust and scfg.robust_3d_mm > 0 and bool(torch.isfinite(result.T).all()):
             prob = prob.with_weights(prob.w2d, prob.w3d * cauchy_weights_3d(prob, result.T, dmax, scfg.robust_3d_mm))
-            result = solve_pose(prob, scfg, result.T)
+            result = solve_pose(prob, scfg, result.T, tol=tol)
         fit = pose_fit(prob, result.T, dmax) if bool(torch.isfinite(result.T).all()) else None
         return result, n_valid, fit
 
