@@ -18,6 +18,7 @@ The per-sequence state (which reference, when to filter, the last motion) belong
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 import weakref
@@ -37,7 +38,7 @@ from vo.geometry import backproject, flow_grid, lands_inside, pixel_grid, sample
 from vo.health import PoseFit, pose_fit, weighted_median
 from vo.lie import rotation_angle_deg
 from vo.residuals import PoseProblem, residuals
-from vo.solver import SolverResult, Tolerance, solve_pose
+from vo.solver import TRACKING, SolverResult, solve_pose
 from vo.weights import TrackingNetworks, WeightInputs, constant_weights, load_tracking_networks
 
 log = logging.getLogger(__name__)
@@ -457,7 +458,7 @@ class StereoOdometry:
             T0 = torch.as_tensor(init, dtype=torch.float32, device=self.device).clone()
             T0[:3, 3] /= dmax
             T0 = T0[None]
-        tol = Tolerance(kernel=scfg.kernel)
+        tol = dataclasses.replace(TRACKING, kernel=scfg.kernel)
         result = solve_pose(prob, scfg, T0, tol=tol)
         if robust and scfg.robust_3d_mm > 0 and bool(torch.isfinite(result.T).all()):
             prob = prob.with_weights(prob.w2d, prob.w3d * cauchy_weights_3d(prob, result.T, dmax, scfg.robust_3d_mm))
