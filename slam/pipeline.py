@@ -14,7 +14,7 @@ import resource
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -76,10 +76,13 @@ class Pipeline:
         dataset: a ``StereoDataset`` view (frames already selected).
         out_dir: where results go.
         logger: a frame logger (``slam.rerun_log.RerunLogger``) or None.
+        provenance: what the results depend on (``slam.provenance.provenance``), written into
+            ``metrics.json``; None writes none.
     """
 
-    def __init__(self, config: SlamConfig, dataset, out_dir: Path, logger=None):
+    def __init__(self, config: SlamConfig, dataset, out_dir: Path, logger=None, provenance: Optional[dict] = None):
         self.config = config
+        self.provenance = provenance
         self.dataset = dataset
         self.out_dir = Path(out_dir)
         self.logger = logger
@@ -117,8 +120,14 @@ class Pipeline:
         self.timings.setdefault(stage, []).append(ms)
 
     # --------------------------------------------------------------------------------------
-    def run(self, progress: bool = True) -> RunResult:
-        """Process every frame; write trajectory rows as they come; never lose finished work."""
+    def run(self, progress: bool = True, on_frame: Optional[Callable[[int], None]] = None) -> RunResult:
+        """Process every frame; write trajectory rows as they come; never lose finished work.
+
+        Args:
+            progress: show a progress bar.
+            on_frame: called with the number of frames done after each frame (e.g. to report
+                progress to a batch driver).
+        """
         from tqdm import tqdm
 
         self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -150,6 +159,8 @@ class Pipeline:
                 elapsed = time.perf_counter() - t_start
                 bar.set_postfix(fps=f"{(k + 1) / max(elapsed, 1e-9):.1f}", fail=sum(r.failed for r in result.records),
                                 flag=sum(r.flagged for r in result.records))
+                if on_frame is not None:
+                    on_frame(k + 1)
         except KeyboardInterrupt:
             result.interrupted = True
             log.warning("interrupted after %d frames; results so far are written", len(result.records))
@@ -302,6 +313,8 @@ class Pipeline:
             "health": health_summary([r.health for r in records]),
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         }
+        if self.provenance is not None:
+            metrics["provenance"] = self.provenance
         if result.interrupted:
             metrics["interrupted"] = True
             metrics["stopped_before_frame"] = int(self.dataset.indices[done]) if done < len(self.dataset) else None
@@ -312,7 +325,7 @@ class Pipeline:
         stamps = np.array([r.timestamp for r in records])
         online_sel = online
         if gt_sel is not None:      # frames without a ground-truth pose (associated by time) are left out
-            known = np.all(np.isfinite(gt_sel.reshape(len(gt_sel), -1)), axis=1)
+            known = np.all(np.isfinite(gt_sel.reshape(len(gt_sel), 16)), axis=1)
             if not known.all():
                 metrics["frames_without_groundtruth"] = int((~known).sum())
                 gt_sel, est, stamps = gt_sel[known], est[known], stamps[known]

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 from slam.config import SlamConfig
 from slam.pipeline import Pipeline, RunResult
@@ -23,17 +24,20 @@ def make_logger(config: SlamConfig, dataset):
 
 
 def run_from_config(data: str | Path, config: SlamConfig, out: str | Path | None = None,
-                    frames: str | None = None, print_summary: bool = True) -> RunResult:
-    """Run one sequence end to end with a resolved config."""
+                    frames: str | None = None, print_summary: bool = True,
+                    on_frame: Callable[[int], None] | None = None) -> RunResult:
+    """Run one sequence end to end with a resolved config; ``metrics.json`` records the run's
+    provenance (``slam.provenance``). ``on_frame``: see ``Pipeline.run``."""
     from slam.datasets import open_dataset
+    from slam.provenance import provenance
 
     dataset = open_dataset(Path(data), config.data)
     if frames:
         dataset = dataset.select(frames)
     out_dir = Path(out) if out else default_out_dir(data, config.tracking.mode)
     logger = make_logger(config, dataset)
-    pipeline = Pipeline(config, dataset, out_dir, logger=logger)
-    result = pipeline.run(progress=config.logging.progress)
+    pipeline = Pipeline(config, dataset, out_dir, logger=logger, provenance=provenance(config, frames))
+    result = pipeline.run(progress=config.logging.progress, on_frame=on_frame)
     if print_summary:
         print(summary_text(result))
     return result

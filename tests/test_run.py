@@ -99,6 +99,31 @@ def test_sigint_leaves_a_valid_trajectory(synth_dir, tmp_path):
     assert np.isfinite(poses).all()
 
 
+def test_interrupted_before_the_first_frame_and_frame_reports(synth_dir, tmp_path, monkeypatch):
+    """Ctrl-C before any frame still writes metrics.json; ``on_frame`` hears of every frame."""
+    from slam.config import load_config
+    from slam.datasets import open_dataset
+    from slam.pipeline import Pipeline
+
+    data = synth_dir("rigid", 30, (160, 128))
+    config = load_config(None, ["weights.mode=constant", "logging.progress=false"])
+    dataset = open_dataset(data, config.data).select("0:4")
+    done = []
+    result = Pipeline(config, dataset, tmp_path / "all").run(progress=False, on_frame=done.append)
+    assert done == [1, 2, 3, 4] and len(result.records) == 4
+
+    pipeline = Pipeline(config, dataset, tmp_path / "none")
+
+    def stop(k, reader):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "_step", stop)
+    result = pipeline.run(progress=False)
+    assert result.interrupted and result.records == []
+    m = json.loads((tmp_path / "none" / "metrics.json").read_text())
+    assert m["interrupted"] is True and m["frames"] == 0 and m["stopped_before_frame"] == 0
+
+
 @pytest.mark.parametrize(
     "setup, needle",
     [

@@ -302,10 +302,11 @@ class TrackingNetworks:
         return self
 
 
-def load_tracking_networks(checkpoint: str, checkpoint_model: str, residuals: str, temporal_gain: float,
-                           temporal_still_mm: float, device: str = "cpu") -> TrackingNetworks:
-    """The networks of ``weights.checkpoint`` / ``weights.checkpoint_model`` (empty: the packaged
-    ones) for the depth filter's settings.
+def tracking_checkpoint_paths(checkpoint: str, checkpoint_model: str, residuals: str, temporal_gain: float,
+                              temporal_still_mm: float) -> dict[str, Path]:
+    """The checkpoint files tracking loads for ``weights.checkpoint`` / ``weights.checkpoint_model``
+    (empty: the packaged ones) and the depth filter's settings, by role (see
+    :class:`TrackingNetworks`: ``filtered``, ``stereo``, ``model``; one file may fill several).
 
     With the filter on (``temporal_gain`` < 1) the packaged filtered networks weigh the filtered
     frames and, when the filter runs only while the camera is still (``temporal_still_mm`` > 0),
@@ -314,16 +315,26 @@ def load_tracking_networks(checkpoint: str, checkpoint_model: str, residuals: st
     networks when no checkpoint is named, else the camera-frame networks.
     """
     filtered = temporal_gain < 1.0
-    nets, meta = load_weight_networks(checkpoint, residuals, device, filtered_depth=filtered)
-    stereo = nets
+    main = Path(checkpoint) if checkpoint else default_checkpoint(residuals, filtered_depth=filtered)
+    stereo = main
     if filtered and temporal_still_mm > 0 and not checkpoint:
-        stereo_path = default_checkpoint(residuals, filtered_depth=False)
-        if stereo_path != default_checkpoint(residuals, filtered_depth=True):
-            stereo = load_weight_networks(stereo_path, residuals, device)[0]
-    model_path = model_reference_checkpoint(checkpoint, checkpoint_model, residuals)
-    model = nets if model_path is None else load_weight_networks(model_path, residuals, device)[0]
+        stereo = default_checkpoint(residuals, filtered_depth=False)
+    model = model_reference_checkpoint(checkpoint, checkpoint_model, residuals) or main
+    return {"filtered": main, "stereo": stereo, "model": model}
+
+
+def load_tracking_networks(checkpoint: str, checkpoint_model: str, residuals: str, temporal_gain: float,
+                           temporal_still_mm: float, device: str = "cpu") -> TrackingNetworks:
+    """The networks of :func:`tracking_checkpoint_paths`, each file loaded once."""
+    paths = tracking_checkpoint_paths(checkpoint, checkpoint_model, residuals, temporal_gain, temporal_still_mm)
+    loaded: dict[Path, tuple[WeightNetworks, dict]] = {}
+    for path in paths.values():
+        if path not in loaded:
+            loaded[path] = load_weight_networks(path, residuals, device)
+    nets, meta = loaded[paths["filtered"]]
     warn_depth_filter_mismatch(meta, temporal_gain, checkpoint)
-    return TrackingNetworks(filtered=nets, stereo=stereo, model=model, meta=meta).to(device)
+    return TrackingNetworks(filtered=nets, stereo=loaded[paths["stereo"]][0], model=loaded[paths["model"]][0],
+                            meta=meta).to(device)
 
 
 def warn_depth_filter_mismatch(meta: dict, temporal_gain: float, checkpoint: str) -> None:
