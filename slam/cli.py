@@ -8,6 +8,8 @@
     slam synth OUT --scenario S [--frames N] [--size WxH] [--seed S] [--raw]
     slam train --config configs/train.yaml [--out DIR]
     slam inspect DATA [--calibration FILE] [--out DIR]
+    slam evaluate ROOT [--protocol folder|stereomis|scared] [--modes ...] [--sweep KEY=V1,V2 ...]
+                  [--out DIR] [--address ray://HOST:PORT | auto] [--workers N] [--cpus-per-task C]
 """
 from __future__ import annotations
 
@@ -17,6 +19,13 @@ import sys
 from pathlib import Path
 
 from slam.errors import SlamError
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line naming the problem (no usage dump)."""
+
+    def error(self, message: str):  # noqa: D401 - argparse API
+        self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
@@ -38,13 +47,37 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _add_batch_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("where the tasks run (docs/evaluation.md)")
+    g.add_argument("--address", metavar="ADDR",
+                   help="a Ray cluster: auto (the one this machine belongs to), HOST:PORT or ray://HOST:PORT; "
+                        "default: this machine")
+    g.add_argument("--executor", choices=["auto", "ray", "local"], default="auto",
+                   help="auto: Ray when it is installed (pip install 'endoslam[cluster]'), else local worker "
+                        "processes (default)")
+    g.add_argument("--workers", type=int, default=0, help="tasks at once on this machine (default: cores / --cpus-per-task)")
+    g.add_argument("--cpus-per-task", type=int, default=1, metavar="C",
+                   help="CPUs per task (Ray's num_cpus; a run's threads when the config leaves them at 0; default 1)")
+    g.add_argument("--timeout", type=float, metavar="SECONDS", help="stop a task that runs longer (default: no limit)")
+    g.add_argument("--force", action="store_true", help="run every task, also those whose results are there")
+    g.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _batch_options(args) -> "BatchOptions":  # noqa: F821
+    from slam.batch.runner import BatchOptions
+
+    return BatchOptions(executor=args.executor, address=args.address, workers=args.workers,
+                        cpus_per_task=args.cpus_per_task, timeout_s=args.timeout, force=args.force,
+                        progress=not args.quiet and sys.stderr.isatty())
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="slam",
         description="Robust stereo-endoscopy SLAM: dense VO with learned 2D/3D residual weights "
                     "(Hayoz et al. 2023) and a surfel map (frame2model).",
     )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=OneLineParser)
 
     run = sub.add_parser("run", help="track a sequence and write trajectory, metrics, plot and map",
                          description="Track a stereo sequence. Writes trajectory.txt (TUM), metrics.json, "
@@ -64,13 +97,16 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--plot", help="also write a trajectory plot (PNG)")
     ev.add_argument("--json", help="also write the metrics as JSON")
 
-    sy = sub.add_parser("synth", help="generate a synthetic stereo-endoscopy sequence with ground truth",
-                        description="Render a synthetic stereo-endoscopy sequence (StereoMIS layout, or StereoMIS raw with --raw).")
-    sy.add_argument("out", help="output folder")
-    sy.add_argument("--scenario", required=True, choices=["rigid", "breathing", "scanning", "deforming", "loop"])
+    sy = sub.add_parser("synth", help="generate synthetic stereo-endoscopy sequences with ground truth",
+                        description="Render a synthetic stereo-endoscopy sequence (StereoMIS layout, or StereoMIS raw "
+                                    "with --raw). With several scenarios or seeds, one sequence per pair in "
+                                    "OUT/SCENARIO_sSEED, rendered in parallel (Ray or local worker processes); "
+                                    "sequences already there with the same parameters are kept.")
+    sy.add_argument("out", help="output folder (with several scenarios or seeds: the folder of the sequences)")
+    sy.add_argument("--scenario", required=True, nargs="+", choices=["rigid", "breathing", "scanning", "deforming", "loop"])
     sy.add_argument("--frames", type=int, default=150, help="frames to render (default 150)")
     sy.add_argument("--size", default="640x512", help="WxH (default 640x512)")
-    sy.add_argument("--seed", type=int, default=0)
+    sy.add_argument("--seed", nargs="+", default=["0"], help="seeds: N or A-B (inclusive); default 0")
     sy.add_argument("--raw", action="store_true", help="unrectified pair with lens distortion as one mp4 (StereoMIS raw layout)")
     sy.add_argument("--codec", choices=["mp4v", "ffv1"], default="mp4v",
                     help="the raw video's codec: mp4v (lossy .mp4, default) or ffv1 (lossless .avi)")
@@ -85,6 +121,37 @@ def build_parser() -> argparse.ArgumentParser:
                          "vignetting, colour) or KEY=VALUE,... with keys texture (1 rich .. 0 nearly textureless), "
                          "highlights (0 .. 1: a fifth of the view), haze (smoke 0 .. 1), exposure_jitter, vignetting, "
                          "tint; default: the generator's own look")
+    _add_batch_options(sy)
+
+    ev2 = sub.add_parser("evaluate", help="many sequences x modes (x swept config values) as parallel tasks; one table",
+                         description="Run every sequence of ROOT in every mode (and every swept config value) as one "
+                                     "task each, on Ray or local worker processes; gather the runs into the paper's "
+                                     "tables (evaluation.md, evaluation.csv, evaluation.png, summary.json). Tasks "
+                                     "whose results are there already are not run again.")
+    ev2.add_argument("root", help="the folder of sequences (folder), the StereoMIS root or the SCARED root")
+    ev2.add_argument("--protocol", choices=["folder", "stereomis", "scared"], default="folder",
+                     help="folder: every sequence sub-folder (default); stereomis: the paper's Tables 1-2 from --csv; "
+                          "scared: the paper's Table 3 and the map's accuracy")
+    ev2.add_argument("--modes", nargs="+", choices=["frame2frame", "frame2model"],
+                     help="default: both (folder), frame2frame (stereomis), frame2model (scared)")
+    ev2.add_argument("--config", help="YAML config (default: the protocol's, configs/stereomis_frame2frame.yaml or "
+                                      "configs/scared_frame2model.yaml; built-in defaults for folder)")
+    ev2.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config value (repeatable)")
+    ev2.add_argument("--sweep", action="append", default=[], metavar="KEY=V1,V2",
+                     help="run every value (repeatable: every combination); a row per value in the tables")
+    ev2.add_argument("--frames", help="frame selection of every sequence: N (first N) or A:B:S (folder, scared)")
+    ev2.add_argument("--out", help="output folder (default runs/evaluate_<ROOT name>)")
+    sm = ev2.add_argument_group("stereomis")
+    sm.add_argument("--csv", help="protocol CSV (default configs/stereomis_protocol.csv, a template)")
+    sm.add_argument("--split", default="test", help="CSV rows of this split (default test)")
+    sc = ev2.add_argument_group("scared")
+    sc.add_argument("--datasets", nargs="+", type=int, default=[1, 8, 9], help="dataset numbers (default 1 8 9)")
+    sc.add_argument("--keyframes", nargs="+", metavar="dD_kK", help="only these keyframes, e.g. d1_k2 d9_k3")
+    sc.add_argument("--gt-depth", metavar="FILE", default="", help="ground-truth depth file name in each keyframe "
+                    "folder (default: left_depth_map.tiff, left_depth.npy or left_depth.png)")
+    sc.add_argument("--gt-depth-scale-mm", type=float, default=0.01, help="mm per unit of a uint16 depth PNG")
+    sc.add_argument("--no-map", action="store_true", help="no map accuracy (and no map export in frame2frame)")
+    _add_batch_options(ev2)
 
     ins = sub.add_parser("inspect", help="what the readers find in a sequence, and a rectified pair to check",
                          description="Print what the readers found (layout, frames, sizes, calibration, rectification, "
@@ -168,14 +235,46 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def cmd_synth(args) -> int:
+    from slam.batch.synth import parse_seeds, synthesize
+    from slam.batch.tasks import SynthTask
     from slam.synth import generate
-    from slam.synth.appearance import parse_appearance
+    from slam.synth.appearance import appearance_tag, parse_appearance
 
-    out = generate(args.out, args.scenario, frames=args.frames, size=parse_size(args.size), seed=args.seed,
-                   raw=args.raw, progress=True, codec=args.codec, breathing_follows_tissue=args.breathing_follows_tissue,
-                   camera_speed=args.camera_speed, appearance=parse_appearance(args.appearance, args.seed))
-    print(f"wrote {args.frames} frames ({args.scenario}, seed {args.seed}) to {out}")
-    return 0
+    seeds = parse_seeds(args.seed)
+    size = parse_size(args.size)
+    scenarios = list(dict.fromkeys(args.scenario))
+    if len(scenarios) == 1 and len(seeds) == 1:
+        scenario, seed = scenarios[0], seeds[0]
+        out = generate(args.out, scenario, frames=args.frames, size=size, seed=seed, raw=args.raw, progress=True,
+                       codec=args.codec, breathing_follows_tissue=args.breathing_follows_tissue,
+                       camera_speed=args.camera_speed, appearance=parse_appearance(args.appearance, seed))
+        print(f"wrote {args.frames} frames ({scenario}, seed {seed}) to {out}")
+        return 0
+    parse_appearance(args.appearance, 0)   # a bad spec fails here, before anything runs
+    root = Path(args.out)
+    tasks = [SynthTask(out_dir=str(root / f"{scenario}_s{seed}{appearance_tag(args.appearance)}"), scenario=scenario,
+                       seed=seed, frames=args.frames, size=size, raw=args.raw, codec=args.codec,
+                       appearance=args.appearance or "", breathing_follows_tissue=args.breathing_follows_tissue,
+                       camera_speed=args.camera_speed)
+             for scenario in scenarios for seed in seeds]
+    outcomes, interrupted = synthesize(tasks, _batch_options(args))
+    failed = sum(o.get("status") != "ok" for o in outcomes.values())
+    print(f"{len(tasks)} sequences in {root}: {len(outcomes) - failed} rendered, {len(tasks) - len(outcomes)} there "
+          f"already{'' if not interrupted else ' or not started (interrupted)'}, {failed} failed")
+    return 130 if interrupted else (1 if failed else 0)
+
+
+def cmd_evaluate(args) -> int:
+    from slam.batch.evaluate import EvaluateRequest, evaluate
+
+    req = EvaluateRequest(root=Path(args.root), protocol=args.protocol, modes=args.modes or [], config=args.config,
+                          overrides=list(args.set), sweeps=list(args.sweep), frames=args.frames,
+                          out=Path(args.out) if args.out else None, csv=Path(args.csv) if args.csv else None,
+                          split=args.split, datasets=args.datasets,
+                          keyframes=[k.lower() for k in args.keyframes] if args.keyframes else None,
+                          gt_depth=args.gt_depth, gt_depth_scale_mm=args.gt_depth_scale_mm, no_map=args.no_map,
+                          batch=_batch_options(args))
+    return evaluate(req)
 
 
 def cmd_inspect(args) -> int:
@@ -197,7 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     handlers = {"run": cmd_run, "compare": cmd_compare, "eval": cmd_eval, "synth": cmd_synth, "train": cmd_train,
-                "inspect": cmd_inspect}
+                "inspect": cmd_inspect, "evaluate": cmd_evaluate}
     try:
         return handlers[args.command](args)
     except SlamError as err:

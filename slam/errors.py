@@ -15,3 +15,10 @@ class DataError(SlamError):
 
 class ConfigError(SlamError):
     """Bad configuration: unknown key, wrong type, value out of range."""
+
+
+def one_line(err: BaseException, limit: int = 300) -> str:
+    """An exception as one line for a table or a log line: our errors by their message, others
+    with their type named."""
+    text = " ".join(str(err).split())
+    return (text if isinstance(err, SlamError) else f"{type(err).__name__}: {text}")[:limit]

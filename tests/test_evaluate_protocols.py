@@ -1,5 +1,6 @@
-"""The paper's evaluation protocols (tools/evaluate_stereomis.py, tools/evaluate_scared.py) end to end
-on synthetic stand-ins in the StereoMIS and SCARED layouts, run from the command line."""
+"""The paper's evaluation protocols (`slam evaluate --protocol stereomis|scared`, through their
+wrappers tools/evaluate_stereomis.py and tools/evaluate_scared.py that make synthetic stand-ins in
+the StereoMIS and SCARED layouts) end to end, run from the command line."""
 from __future__ import annotations
 
 import json
@@ -17,7 +18,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 TOOLS = REPO / "tools"
 ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
-THREADS = ["--set", "threads=1"]
+THREADS = ["--set", "threads=1", "--executor", "local"]
 
 
 def run_tool(name: str, *args, timeout: float = 300) -> subprocess.CompletedProcess:
@@ -54,9 +55,9 @@ def stereomis(tmp_path_factory):
 def test_stereomis_standin_end_to_end(stereomis):
     folder, res = stereomis
     out = folder / "results"
-    md = (out / "stereomis_eval.md").read_text()
+    md = (out / "evaluation.md").read_text()
     assert "Table 1 style" in md and "Table 2 style" in md and "Table 1 style" in res.stdout
-    report = json.loads((out / "stereomis_eval.json").read_text())
+    report = json.loads((out / "summary.json").read_text())
     rows = report["rows"]
     assert len(rows) == 9  # 3 sequences x (2 clips + full), frame2frame
     for r in rows:
@@ -66,14 +67,16 @@ def test_stereomis_standin_end_to_end(stereomis):
             assert finite(r[key]) and r[key] >= 0, (key, r)
         assert r["ate_rmse_mm"] < 3.0 and r["rpe_trans_mm"] < 1.0 and r["rpe_rot_deg"] < 1.0, r
         assert (Path(r["out"]) / "trajectory.txt").is_file()
-    t1 = report["table1"]["frame2frame"]
+    t1 = report["tables"]["table1"]["frame2frame"]
     for sc in ("breathing", "scanning", "deforming"):
         assert t1[sc]["n"] == 2 and finite(t1[sc]["mean"]) and t1[sc]["mean"] < 3.0
     assert t1["micro"]["n"] == 6 and finite(t1["micro"]["mean"])
     assert t1["macro"]["n"] == 3 and finite(t1["macro"]["mean"])
-    t2 = report["table2"]["frame2frame"]
+    t2 = report["tables"]["table2"]["frame2frame"]
     assert t2["average"]["n"] == 3 and finite(t2["average"]["ate_rmse_mm"]["mean"])
     assert set(t2["subjects"]) == {"P2", "P3"} and t2["macro"]["n"] == 2
+    p2 = [r["ate_rmse_mm"] for r in rows if r["scenario"] == "full" and r["group"] == "P2"]
+    assert t2["subjects"]["P2"]["ate_rmse_mm"] == pytest.approx(np.mean(p2))
     assert report["errors"] == 0
 
 
@@ -92,21 +95,25 @@ def test_stereomis_bad_rows_are_error_rows(stereomis, tmp_path):
                    "--set", "data.width=0", "--set", "data.height=0")
     assert res.returncode == 0, res.stdout + res.stderr
     assert "Traceback" not in res.stderr
-    report = json.loads((out / "stereomis_eval.json").read_text())
-    rows = report["rows"]
-    assert [r["status"] for r in rows] == ["ok", "error", "error", "error"]
-    assert "P9_9" in rows[1]["message"] and "no such folder" in rows[1]["message"]
-    assert "beyond" in rows[2]["message"]
-    assert all("\n" not in r.get("message", "") for r in rows)
-    assert report["errors"] == 3 and finite(rows[0]["ate_rmse_mm"])
-    assert report["table1"]["frame2frame"]["breathing"]["errors"] == 1
-    assert report["table2"]["frame2frame"]["errors"] == 1
-    md = (out / "stereomis_eval.md").read_text()
+    report = json.loads((out / "summary.json").read_text())
+    rows = {(r["sequence"], r["selection"]): r for r in report["rows"]}
+    assert len(rows) == 4
+    assert rows[("P2_0", "0:4")]["status"] == "ok" and finite(rows[("P2_0", "0:4")]["ate_rmse_mm"])
+    assert rows[("P9_9", "0:6")]["status"] == "error" and "P9_9" in rows[("P9_9", "0:6")]["message"]
+    assert "no such folder" in rows[("P9_9", "0:6")]["message"]
+    assert rows[("P2_0", "0:500")]["status"] == "error" and "beyond" in rows[("P2_0", "0:500")]["message"]
+    assert rows[("P9_9", "")]["status"] == "error"
+    assert all("\n" not in r.get("message", "") for r in rows.values())
+    assert report["errors"] == 3
+    assert report["tables"]["table1"]["frame2frame"]["breathing"]["errors"] == 1
+    assert report["tables"]["table2"]["frame2frame"]["errors"] == 1
+    assert any("other splits skipped" in n for n in report["notes"])
+    md = (out / "evaluation.md").read_text()
     assert "| P9_9 | error: " in md
 
 
 def test_stereomis_bad_arguments(tmp_path):
-    assert_one_line_error(run_tool("evaluate_stereomis.py", "--bogus"), "unrecognized")
+    assert_one_line_error(run_tool("evaluate_stereomis.py", tmp_path, "--bogus"), "unrecognized")
     assert_one_line_error(run_tool("evaluate_stereomis.py"), "root")
     assert_one_line_error(run_tool("evaluate_stereomis.py", tmp_path / "missing"), "no such folder")
     assert_one_line_error(run_tool("evaluate_stereomis.py", tmp_path, "--set", "tracking.mdoe=x"), "tracking.mdoe")
@@ -120,12 +127,11 @@ def test_stereomis_bad_arguments(tmp_path):
 
 
 def test_default_protocol_csv_parses():
-    sys.path.insert(0, str(TOOLS))
-    import evaluate_stereomis
+    from slam.batch.protocols import CONFIGS, read_stereomis_csv
 
-    rows = evaluate_stereomis.read_protocol(evaluate_stereomis.DEFAULT_CSV)
+    rows = read_stereomis_csv(CONFIGS / "stereomis_protocol.csv")
     assert rows and {r["scenario"] for r in rows} <= {"breathing", "scanning", "deforming", "full"}
-    assert "TEMPLATE" in evaluate_stereomis.DEFAULT_CSV.read_text()
+    assert "TEMPLATE" in (CONFIGS / "stereomis_protocol.csv").read_text()
 
 
 # ------------------------------------------------------------------------------------------------
@@ -159,11 +165,11 @@ def test_scared_standin_layout(scared):
 def test_scared_standin_end_to_end(scared):
     folder, res = scared
     out = folder / "results"
-    md = (out / "scared_eval.md").read_text()
-    assert "Table 3 style" in md and "map median" in md and "Table 3 style" in res.stdout
-    report = json.loads((out / "scared_eval.json").read_text())
+    md = (out / "evaluation.md").read_text()
+    assert "Table 3 style" in md and "Map accuracy" in md and "Table 3 style" in res.stdout
+    report = json.loads((out / "summary.json").read_text())
     rows = report["rows"]
-    assert [r["keyframe"] for r in rows] == ["d1_k2", "d8_k1"]
+    assert [r["sequence"] for r in rows] == ["d1_k2", "d8_k1"]
     for r in rows:
         assert r["status"] == "ok" and r["mode"] == "frame2model", r
         assert r["frames"] == 12 and r["failed"] == 0
@@ -172,8 +178,9 @@ def test_scared_standin_end_to_end(scared):
         assert r["ate_rmse_mm"] < 2.0 and r["rpe_trans_mm"] < 1.0, r
         assert r["map_median_mm"] < 1.0 and r["map_mean_mm"] < 2.0, r
         assert 0.05 < r["map_coverage"] <= 1.0 and r["map_points"] > 1000 and r["gt_pixels"] > 0.5 * 320 * 256
-    s = report["summary"]["frame2model"]
+    s = report["tables"]["table3"]["frame2model"]
     assert s["n"] == 2 and finite(s["ate_rmse_mm"]["mean"]) and s["paper_avg_ate_mm"]["n"] == 2
+    assert s["map_median_mm"]["mean"] == pytest.approx(np.mean([r["map_median_mm"] for r in rows]))
     assert report["errors"] == 0
 
 
@@ -189,18 +196,19 @@ def test_scared_missing_keyframes_are_error_rows(scared, tmp_path):
                    "--set", "data.width=0", "--set", "data.height=0")
     assert res.returncode == 0, res.stdout + res.stderr
     assert "Traceback" not in res.stderr
-    report = json.loads((out / "scared_eval.json").read_text())
-    status = {r["keyframe"]: r for r in report["rows"]}
+    report = json.loads((out / "summary.json").read_text())
+    status = {r["sequence"]: r for r in report["rows"]}
     assert status["d1_k2"]["status"] == "ok" and status["d1_k2"]["frames"] == 4
     assert "map_median_mm" not in status["d1_k2"]
     assert status["d8_k1"]["status"] == "error" and "not found" in status["d8_k1"]["message"]
     assert status["d9_k3"]["status"] == "error" and "rgb.mp4" in status["d9_k3"]["message"]
     assert report["errors"] == 2
-    assert "| d9_k3 | error: " in (out / "scared_eval.md").read_text()
+    line = next(ln for ln in (out / "evaluation.md").read_text().splitlines() if ln.startswith("| d9_k3 |"))
+    assert "| error |" in line and "rgb.mp4" in line
 
 
 def test_scared_bad_arguments(tmp_path):
-    assert_one_line_error(run_tool("evaluate_scared.py", "--bogus"), "unrecognized")
+    assert_one_line_error(run_tool("evaluate_scared.py", tmp_path, "--bogus"), "unrecognized")
     assert_one_line_error(run_tool("evaluate_scared.py"), "root")
     assert_one_line_error(run_tool("evaluate_scared.py", tmp_path / "missing"), "no such folder")
     assert_one_line_error(run_tool("evaluate_scared.py", tmp_path, "--datasets", "one"), "--datasets")
@@ -215,8 +223,7 @@ def test_gt_depth_files(tmp_path):
 
     from slam.synth.scared_layout import read_xyz_tiff, write_xyz_tiff
 
-    sys.path.insert(0, str(TOOLS))
-    import evaluate_scared
+    from slam.batch.map_accuracy import load_gt_depth
 
     xyz = np.zeros((4, 5, 3), np.float32)
     xyz[..., 0], xyz[..., 1], xyz[..., 2] = 1.5, 2.5, 80.0
@@ -225,12 +232,12 @@ def test_gt_depth_files(tmp_path):
     np.testing.assert_array_equal(read_xyz_tiff(tmp_path / "left_depth_map.tiff"), xyz)
     raw = (tmp_path / "left_depth_map.tiff").read_bytes()
     assert struct.pack("<fff", 1.5, 2.5, 80.0) in raw  # x y z per pixel, as SCARED / tifffile
-    z, path = evaluate_scared.load_gt_depth(tmp_path)
+    z, path = load_gt_depth(tmp_path)
     assert path.name == "left_depth_map.tiff" and np.isnan(z[0, 0]) and np.all(z.flat[1:] == 80.0)
     np.save(tmp_path / "d.npy", xyz[..., 2])
-    z, _ = evaluate_scared.load_gt_depth(tmp_path, "d.npy")
+    z, _ = load_gt_depth(tmp_path, "d.npy")
     assert np.isnan(z[0, 0]) and z[1, 1] == 80.0
     cv2.imwrite(str(tmp_path / "d.png"), (xyz[..., 2] / 0.01).astype(np.uint16))
-    z, _ = evaluate_scared.load_gt_depth(tmp_path, "d.png", 0.01)
+    z, _ = load_gt_depth(tmp_path, "d.png", 0.01)
     assert np.isnan(z[0, 0]) and z[1, 1] == pytest.approx(80.0)
-    assert evaluate_scared.load_gt_depth(tmp_path / "nothing") == (None, None)
+    assert load_gt_depth(tmp_path / "nothing") == (None, None)
