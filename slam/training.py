@@ -76,6 +76,8 @@ class TrainDataConfig:
             frame2model tracks against; trains the networks of ``weights.checkpoint_model``).
         min_model_coverage: ``model``: a pair whose render covers less of the reference frame's
             valid pixels is left out (tracking falls back to the previous frame there).
+        workers: processes that render the missing synthetic sequences at once (``slam.batch``'s
+            local workers; 0: one per core, 1: in this process).
         chain_length: 1: independent pairs (eq. 7 per pair). ``L > 1``: the pairs come in chains of
             ``L`` consecutive frame pairs (one frame apart, as frame2frame tracks) and the loss of
             eq. 7 is taken on the chain's composed pose: the per-pair loss weighs each pair's
@@ -107,6 +109,7 @@ class TrainDataConfig:
     reference: str = "frame"
     min_model_coverage: float = 0.95
     chain_length: int = 1
+    workers: int = 0
 
 
 @dataclass
@@ -205,26 +208,31 @@ def load_train_config(path: str | Path, overrides: list[str] | None = None) -> T
 
 # ------------------------------------------------------------------------------------- data
 def training_sequences(cfg: TrainConfig, progress: bool = True) -> list[Path]:
-    """The training sequence folders, generating missing synthetic ones into the cache."""
+    """The training sequence folders, rendering the missing synthetic ones into the cache (in
+    ``data.workers`` processes on the batch engine, ``slam.batch.synth``)."""
+    from slam.batch.runner import BatchOptions
+    from slam.batch.synth import synthesize_or_fail
+    from slam.batch.tasks import SynthTask
     from slam.synth import generate
 
     root = Path(cfg.data.cache_dir) / "sequences"
-    paths = []
     look = cfg.data.appearance.strip()
-    for scenario in cfg.data.scenarios:
-        for seed in cfg.data.seeds:
-            follows = cfg.data.breathing_follows_tissue
-            tag = f"_ft{follows:g}" if follows else ""
-            tag += appearance_tag(look)
-            out = root / f"{scenario}_s{seed}_{cfg.data.width}x{cfg.data.height}_n{cfg.data.frames}{tag}"
-            if not (out / "groundtruth.txt").is_file():
-                log.info("generating %s", out)
-                appearance = parse_appearance(look, appearance_seed(scenario, seed))
-                generate(out, scenario, frames=cfg.data.frames, size=(cfg.data.width, cfg.data.height), seed=seed,
-                         progress=progress, breathing_follows_tissue=follows, appearance=appearance)
-            paths.append(out)
-    paths += [Path(p) for p in cfg.data.sequences]
-    return paths
+    follows = cfg.data.breathing_follows_tissue
+    tag = (f"_ft{follows:g}" if follows else "") + appearance_tag(look)
+    tasks = [SynthTask(out_dir=str(root / f"{scenario}_s{seed}_{cfg.data.width}x{cfg.data.height}_n{cfg.data.frames}{tag}"),
+                       scenario=scenario, seed=seed, frames=cfg.data.frames, size=(cfg.data.width, cfg.data.height),
+                       appearance=look, appearance_seed=appearance_seed(scenario, seed), breathing_follows_tissue=follows)
+             for scenario in cfg.data.scenarios for seed in cfg.data.seeds]
+    missing = [t for t in tasks if not t.is_done()]
+    if cfg.data.workers == 1 or len(missing) == 1:
+        for t in missing:
+            log.info("generating %s", t.out_dir)
+            generate(t.out_dir, t.scenario, frames=t.frames, size=t.size, seed=t.seed, progress=progress,
+                     breathing_follows_tissue=follows, appearance=t.look())
+    elif missing:
+        log.info("generating %d training sequences in %s", len(missing), root)
+        synthesize_or_fail(missing, BatchOptions(executor="local", workers=cfg.data.workers, progress=progress))
+    return [Path(t.out_dir) for t in tasks] + [Path(p) for p in cfg.data.sequences]
 
 
 def appearance_seed(scenario: str, seed: int) -> int:
@@ -332,7 +340,7 @@ def chain_pose_loss(p: torch.Tensor, p_gt: torch.Tensor, ok: torch.Tensor, lengt
 def _cache_key(cfg: TrainConfig, path: Path) -> str:
     """What the samples of one sequence depend on (not on which other sequences are trained)."""
     data = asdict(cfg.data)
-    for name in ("breathing_follows_tissue", "appearance", "scenarios", "seeds", "sequences", "cache_dir"):
+    for name in ("breathing_follows_tissue", "appearance", "scenarios", "seeds", "sequences", "cache_dir", "workers"):
         data.pop(name)  # the sequence itself is named by its path (the coupling is in the folder name)
     data.pop("chain_length")    # ("pairs" below marks the caches of every consecutive pair)
     if cfg.data.reference == "frame":

@@ -11,7 +11,7 @@ from vo.weights import (DEPTH_CHANGE_REL, IN_CHANNELS, INPUT_VERSION, WeightInpu
 TINY = {
     "residuals": "2d3d",
     "data": {"scenarios": ["rigid", "breathing"], "seeds": [5000], "frames": 12, "width": 96, "height": 80,
-             "pairs_per_sequence": 8, "pixels_per_pair": 512},
+             "pairs_per_sequence": 8, "pixels_per_pair": 512, "workers": 1},
     "optim": {"epochs": 2, "batch_size": 4, "patience": 2, "seed": 3, "threads": 1},
 }
 
@@ -313,14 +313,15 @@ def test_chain_loss_on_consecutive_pairs(tmp_path):
 
 def test_training_sequences_with_random_looks(tmp_path):
     """data.appearance=random: one look per scenario and seed, drawn as slam synth --appearance
-    random draws it from appearance_seed, in folders of their own beside the default look's."""
+    random draws it from appearance_seed, in folders of their own beside the default look's;
+    rendered by two worker processes (the batch engine) as by this one."""
     import json
 
     from slam.synth.appearance import random_appearance
     from slam.training import appearance_seed, load_train_config, training_sequences
 
     cfg = dict(TINY)
-    cfg["data"] = {**TINY["data"], "frames": 3, "cache_dir": str(tmp_path / "cache")}
+    cfg["data"] = {**TINY["data"], "frames": 3, "cache_dir": str(tmp_path / "cache"), "workers": 2}
     path = tmp_path / "looks.yaml"
     path.write_text(yaml.safe_dump(cfg))
     paths = training_sequences(load_train_config(path, ["data.appearance=random"]), progress=False)
@@ -332,3 +333,8 @@ def test_training_sequences_with_random_looks(tmp_path):
     plain = training_sequences(load_train_config(path), progress=False)
     assert [p.name for p in plain] == ["rigid_s5000_96x80_n3", "breathing_s5000_96x80_n3"]
     assert json.loads((plain[0] / "synth.json").read_text())["appearance"]["texture"] == 1.0
+    alone = training_sequences(load_train_config(path, ["data.workers=1", f"data.cache_dir={tmp_path / 'alone'}"]),
+                               progress=False)
+    for a, b in zip(alone, plain):
+        assert (a / "groundtruth.txt").read_text() == (b / "groundtruth.txt").read_text()
+        assert (a / "video_frames" / "000002r.png").read_bytes() == (b / "video_frames" / "000002r.png").read_bytes()
