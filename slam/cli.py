@@ -251,7 +251,7 @@ def cmd_synth(args) -> int:
         print(f"wrote {args.frames} frames ({scenario}, seed {seed}) to {out}")
         return 0
     parse_appearance(args.appearance, 0)   # a bad spec fails here, before anything runs
-    root = Path(args.out)
+    root = Path(args.out).expanduser().resolve()      # workers may start in another folder
     tasks = [SynthTask(out_dir=str(root / f"{scenario}_s{seed}{appearance_tag(args.appearance)}"), scenario=scenario,
                        seed=seed, frames=args.frames, size=size, raw=args.raw, codec=args.codec,
                        appearance=args.appearance or "", breathing_follows_tissue=args.breathing_follows_tissue,

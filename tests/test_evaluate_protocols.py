@@ -121,6 +121,8 @@ def test_stereomis_bad_arguments(tmp_path):
     bad = tmp_path / "bad.csv"
     bad.write_text("sequence,start,end,scenario,split\nP2_0,0,150,walking,test\n")
     assert_one_line_error(run_tool("evaluate_stereomis.py", tmp_path, "--csv", bad), "bad.csv:2", "walking")
+    bad.write_text("sequence,start,end,scenario,split\nP2_0,0,150,scanning,test\nP2_0,0,150,scanning,test\n")
+    assert_one_line_error(run_tool("evaluate_stereomis.py", tmp_path, "--csv", bad), "bad.csv:3", "same clip")
     bad.write_text("sequence,start,scenario\nP2_0,0,full\n")
     assert_one_line_error(run_tool("evaluate_stereomis.py", tmp_path, "--csv", bad), "end")
     assert_one_line_error(run_tool("evaluate_stereomis.py", tmp_path, "--csv", tmp_path / "none.csv"), "none.csv")

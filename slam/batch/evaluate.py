@@ -35,6 +35,9 @@ from slam.errors import ConfigError, DataError
 
 DEFAULT_CONFIGS = {"folder": None, "stereomis": protocols.CONFIGS / "stereomis_frame2frame.yaml",
                    "scared": protocols.CONFIGS / "scared_frame2model.yaml"}
+#: config values that name files: made absolute before they travel to a worker
+PATH_KEYS = (("weights", "checkpoint"), ("weights", "checkpoint_model"), ("correspondence", "raft_checkpoint"),
+             ("data", "calibration"))
 DEFAULT_MODES = {"folder": ["frame2frame", "frame2model"], "stereomis": ["frame2frame"], "scared": ["frame2model"]}
 
 
@@ -104,6 +107,10 @@ def task_config(base: SlamConfig, sweep: list[str], mode: str, cpus_per_task: in
         validate(config)
     except ConfigError as err:
         raise ConfigError(f"--sweep {' '.join(sweep)}: {err}" if sweep else str(err)) from None
+    for section, key in PATH_KEYS:       # a worker elsewhere, or in another folder, finds them too
+        part = getattr(config, section)
+        if getattr(part, key):
+            setattr(part, key, str(Path(getattr(part, key)).expanduser().resolve()))
     if config.threads == 0:
         config.threads = cpus_per_task
     config.logging.progress = False
@@ -204,6 +211,9 @@ def row_of(task: RunTask, outcome: Optional[dict], resumed: bool) -> dict:
     if outcome is not None and outcome.get("seconds") is not None:
         row["seconds"] = outcome["seconds"]
     metrics = read_json(Path(task.out_dir) / METRICS)
+    if metrics is None and row["status"] == "ok":
+        row.update(status="error", message=f"{task.out_dir}: the run ended but its metrics.json is not here: OUT must "
+                                           "be a folder every node mounts at the same path (docs/evaluation.md)")
     if metrics is not None and row["status"] != "error":
         row.update(frames=metrics.get("frames"), failed=len(metrics.get("failed_frames", [])),
                    flagged=len(metrics.get("flagged_frames", [])), fps=metrics.get("fps"))
@@ -236,7 +246,8 @@ def evaluate(req: EvaluateRequest) -> int:
     if req.protocol not in protocols.PROTOCOLS:
         raise ConfigError(f"--protocol {req.protocol}: expected one of {', '.join(protocols.PROTOCOLS)}")
     req.batch.validate()
-    out = Path(req.out) if req.out else Path("runs") / f"evaluate_{Path(req.root).resolve().name}"
+    req.root = Path(req.root).expanduser().resolve()
+    out = (Path(req.out) if req.out else Path("runs") / f"evaluate_{req.root.name}").expanduser().resolve()
     tasks, error_rows, notes = build_tasks(req, out)
     done = set() if req.batch.force else {i for i, t in enumerate(tasks) if t.is_done()}
     order = sorted((i for i in range(len(tasks)) if i not in done), key=lambda i: -tasks[i].cost)

@@ -355,7 +355,8 @@ class RayExecutor:
             cluster's address (``auto``, ``HOST:PORT``, ``ray://HOST:PORT``).
         workers: local runtime only: how many tasks run at once.
         cpus_per_task: each task's ``num_cpus``.
-        env: environment variables of every task's worker (Ray's ``runtime_env``).
+        env: environment variables of every task's worker (on a cluster through Ray's
+            ``runtime_env``).
     """
 
     kind = "ray"
@@ -387,16 +388,22 @@ class RayExecutor:
 
         if ray.is_initialized():
             return
-        options = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR,
-                       runtime_env={"env_vars": self.env})
+        options = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+        saved = dict(os.environ)
         try:
             if self.address is None:
+                # the local runtime's workers inherit this environment (a runtime_env would start
+                # a worker of its own for it, a second later)
+                os.environ.update(self.env)
                 ray.init(num_cpus=self.workers * self.cpus_per_task, object_store_memory=128 * 1024 * 1024, **options)
             else:
-                ray.init(address=self.address, **options)
+                ray.init(address=self.address, runtime_env={"env_vars": self.env}, **options)
         except Exception as err:  # noqa: BLE001 - Ray raises several kinds; the user needs one line
             where = f"the Ray cluster at {self.address}" if self.address else "a local Ray runtime"
             raise ConfigError(f"cannot start or reach {where}: {one_line(err)}") from None
+        finally:
+            os.environ.clear()
+            os.environ.update(saved)
         self._started_runtime = True
 
     def run(self, function: WorkerFunction, payloads: list) -> Iterator[Event]:

@@ -170,13 +170,19 @@ def stereomis_entries(root: Path, csv_path: Path, split: str) -> tuple[list[Entr
     if len(rows) > len(todo):
         notes.append(f"{len(rows) - len(todo)} CSV row(s) of other splits skipped.")
     entries = []
+    seen: dict[str, int] = {}
     for r in todo:
         s = "start" if r["start"] is None else str(r["start"])
         e = "end" if r["end"] is None else str(r["end"])
+        name = f"{r['sequence']}_{s}-{e}_{r['scenario']}"
+        if name in seen:
+            raise ConfigError(f"{csv_path}:{r['line']}: the same clip as line {seen[name]} "
+                              f"({r['sequence']} {s}-{e} {r['scenario']})")
+        seen[name] = r["line"]
         whole = r["start"] is None and r["end"] is None
         frames = None if whole else f"{'' if r['start'] is None else r['start']}:{'' if r['end'] is None else r['end']}"
         path = root / r["sequence"]
-        entries.append(Entry(name=f"{r['sequence']}_{s}-{e}_{r['scenario']}", sequence=r["sequence"], path=path,
+        entries.append(Entry(name=name, sequence=r["sequence"], path=path,
                              frames=frames, scenario=r["scenario"], group=subject_of(r["sequence"]),
                              bounds=None if whole else (r["start"], r["end"]),
                              error="" if path.is_dir() or path.is_file() else f"{path}: no such folder"))
