@@ -209,6 +209,28 @@ def test_evaluate_killed_half_way_then_restarted(folder, tmp_path):
     assert summary["errors"] == 0 and len(summary["rows"]) == 3
 
 
+def test_evaluate_ctrl_c_keeps_what_finished(folder, tmp_path):
+    out = tmp_path / "interrupted"
+    # the default SIGINT action even when the tests run as a background job (started with SIGINT ignored)
+    proc = subprocess.Popen([*SLAM, "evaluate", str(folder), "--executor", "local", "--workers", "1", "--modes",
+                             "frame2frame", "--out", str(out), "--quiet"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.time() + 180
+    while time.time() < deadline and not list(out.glob("runs/*/frame2frame/metrics.json")):
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    summary = read_summary(out)
+    assert summary["interrupted"] is True and summary["not_run"]
+    done = [r for r in summary["rows"] if r["status"] == "ok"]
+    assert done and all(r["frames"] == FRAMES and r["ate_rmse_mm"] > 0 for r in done)
+    assert len(summary["rows"]) + len(summary["not_run"]) == 3
+    assert "INTERRUPTED" in (out / "evaluation.md").read_text()
+
+
 def test_evaluate_error_row_for_a_broken_sequence(folder, tmp_path):
     import shutil
 
@@ -298,3 +320,18 @@ def test_synth_many_sequences(tmp_path, capsys):
     assert main(args) == 0            # nothing to render again
     assert "4 there already" in capsys.readouterr().out
     assert main(["synth", str(out), "--scenario", "rigid", "--seed", "4-3"]) == 2
+
+
+def test_executor_choice_without_ray(monkeypatch):
+    from slam.batch import runner
+    from slam.errors import ConfigError
+
+    monkeypatch.setattr(runner, "ray_available", lambda: False)
+    assert runner.BatchOptions().kind() == "local"
+    for options in (runner.BatchOptions(executor="ray"), runner.BatchOptions(address="auto")):
+        with pytest.raises(ConfigError, match="endoslam\\[cluster\\]"):
+            options.kind()
+    monkeypatch.setattr(runner, "ray_available", lambda: True)
+    assert runner.BatchOptions().kind() == "ray" and runner.BatchOptions(executor="local").kind() == "local"
+    with pytest.raises(ConfigError, match="--address"):
+        runner.BatchOptions(executor="local", address="auto").validate()
