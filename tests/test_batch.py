@@ -108,12 +108,12 @@ def test_local_executor_interrupt_keeps_what_finished():
     assert 2 not in ends      # never started
 
 
-def test_ray_executor_isolates_a_crash():
+def test_ray_executor_isolates_a_crash(monkeypatch):
     pytest.importorskip("ray", reason="Ray is the optional extra endoslam[cluster]")
     from slam.batch.executors import RayExecutor
 
-    ex = RayExecutor(None, workers=2, cpus_per_task=1, env={"PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"},
-                     timeout_s=2.0, grace_s=5.0)
+    monkeypatch.setenv("PYTHONPATH", str(REPO))    # the runtime's workers find tests.batch_work
+    ex = RayExecutor(None, workers=2, cpus_per_task=1, env={"OMP_NUM_THREADS": "1"}, timeout_s=2.0, grace_s=5.0)
     events = collect(ex, [("ok", 1), ("crash", 0), ("sleep", 100), ("ok", 2)])
     ends = {e.index: e.outcome for e in events if isinstance(e, Finished)}
     assert sorted(ends) == [0, 1, 2, 3]
