@@ -31,7 +31,7 @@ from slam.batch.runner import BatchOptions, run_batch
 from slam.batch.tables import METRIC_KEYS, fmt, plot, scenarios_of, write_csv
 from slam.batch.tasks import MAP_ACCURACY, METRICS, MapAccuracySpec, RunTask, read_json
 from slam.config import SlamConfig, apply_override, load_config, validate
-from slam.errors import ConfigError, DataError
+from slam.errors import ConfigError
 
 DEFAULT_CONFIGS = {"folder": None, "stereomis": protocols.CONFIGS / "stereomis_frame2frame.yaml",
                    "scared": protocols.CONFIGS / "scared_frame2model.yaml"}
@@ -92,10 +92,10 @@ def sweep_folder(overrides: list[str]) -> str:
     return "_".join(re.sub(r"[^A-Za-z0-9._=+-]", "-", o) for o in overrides)
 
 
-def task_config(base: SlamConfig, sweep: list[str], mode: str, cpus_per_task: int, out_dir: Path) -> SlamConfig:
-    """The resolved config of one task: the base with the swept values and the mode, ``threads``
-    made explicit (the CPUs a task gets when the config leaves them at 0), no progress bar, a
-    rerun recording (when asked for) in the task's own folder."""
+def method_config(base: SlamConfig, sweep: list[str], mode: str, cpus_per_task: int) -> SlamConfig:
+    """The resolved config of one swept combination and mode: the base with the swept values and
+    the mode, ``threads`` made explicit (the CPUs a task gets when the config leaves them at 0),
+    no progress bar."""
     config = copy.deepcopy(base)
     for item in sweep:
         try:
@@ -115,8 +115,15 @@ def task_config(base: SlamConfig, sweep: list[str], mode: str, cpus_per_task: in
         config.threads = cpus_per_task
     config.logging.progress = False
     config.logging.spawn = False
-    if config.logging.rerun:
-        config.logging.rerun = str(out_dir / "run.rrd")
+    return config
+
+
+def task_config(method: SlamConfig, out_dir: Path) -> SlamConfig:
+    """A task's config: its method's, with a rerun recording (when asked for) in its own folder."""
+    if not method.logging.rerun:
+        return method
+    config = copy.deepcopy(method)
+    config.logging.rerun = str(out_dir / "run.rrd")
     return config
 
 
@@ -184,10 +191,11 @@ def build_tasks(req: EvaluateRequest, out: Path) -> tuple[list[RunTask], list[di
     for sweep in sweeps:
         label = sweep_label(sweep)
         level = out / "runs" / sweep_folder(sweep) if sweep else out / "runs"
+        methods = {mode: method_config(base, sweep, mode, req.batch.cpus_per_task) for mode in modes}
         for entry in entries:
             for mode in modes:
                 run_dir = level / entry.name / mode
-                config = task_config(base, sweep, mode, req.batch.cpus_per_task, run_dir)
+                config = task_config(methods[mode], run_dir)
                 if entry.error:
                     error_rows.append({"sweep": label, "sequence": entry.sequence, "selection": entry.frames or "",
                                        "scenario": entry.scenario, "group": entry.group, "mode": mode,
