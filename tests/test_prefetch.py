@@ -120,7 +120,12 @@ def test_flow_ahead_gives_the_same_run_and_goes_to_the_idle_thread(synth_dir, tm
     np.testing.assert_array_equal(poses[True], poses[False])
     assert main_pairs[False] == 5 and ahead_pairs[False] == 0
     assert main_pairs[True] + ahead_pairs[True] == 5
-    assert (main_pairs[True], ahead_pairs[True]) == ((1, 4) if slow == "track" else (5, 0))
+    if slow == "track":
+        # frame 1's flow is the main thread's when it waits for frame 1, the read-ahead thread's
+        # when a loaded machine delays the main thread until frame 1 is ready: 1 or 0
+        assert main_pairs[True] <= 1 and ahead_pairs[True] >= 4
+    else:
+        assert (main_pairs[True], ahead_pairs[True]) == (5, 0)
 
 
 def test_flow_ahead_is_taken_only_against_the_view_it_was_computed_for(synth_dir):
