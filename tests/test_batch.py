@@ -5,9 +5,11 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -108,11 +110,25 @@ def test_local_executor_interrupt_keeps_what_finished():
     assert 2 not in ends      # never started
 
 
-def test_ray_executor_isolates_a_crash(monkeypatch):
+@pytest.fixture
+def short_tmp():
+    """A folder with a short path (Ray's socket paths live under its temp folder)."""
+    folder = Path(tempfile.mkdtemp(prefix="ray", dir="/tmp"))
+    yield folder
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_ray_executor_isolates_a_crash(monkeypatch, short_tmp):
+    """Also: the local runtime is its own, even where Ray's address file names another cluster (one
+    started with ``ray start`` earlier, here a dead one): Ray would join that one without being told
+    ``local``, and refuse the CPU count."""
     pytest.importorskip("ray", reason="Ray is the optional extra endoslam[cluster]")
     from slam.batch.executors import RayExecutor
 
     monkeypatch.setenv("PYTHONPATH", str(REPO))    # the runtime's workers find tests.batch_work
+    (short_tmp / "ray").mkdir()
+    (short_tmp / "ray" / "ray_current_cluster").write_text("127.0.0.1:9")
+    monkeypatch.setenv("RAY_TMPDIR", str(short_tmp))      # Ray's files in RAY_TMPDIR/ray
     ex = RayExecutor(None, workers=2, cpus_per_task=1, env={"OMP_NUM_THREADS": "1"}, timeout_s=2.0, grace_s=5.0)
     events = collect(ex, [("ok", 1), ("crash", 0), ("sleep", 100), ("ok", 2)])
     ends = {e.index: e.outcome for e in events if isinstance(e, Finished)}

@@ -395,8 +395,10 @@ class RayExecutor:
             return
         options = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
         try:
-            if self.address is None:
-                ray.init(num_cpus=self.workers * self.cpus_per_task, object_store_memory=128 * 1024 * 1024, **options)
+            if self.address is None:   # "local": a runtime of our own, even when another is running or Ray's
+                # address file names one (Ray would join that one and refuse the CPU count)
+                ray.init(address="local", num_cpus=self.workers * self.cpus_per_task,
+                         object_store_memory=128 * 1024 * 1024, **options)
             else:
                 ray.init(address=self.address, **options)
         except Exception as err:  # noqa: BLE001 - Ray raises several kinds; the user needs one line
