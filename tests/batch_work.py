@@ -25,4 +25,5 @@ def work(payload, report):
         except KeyboardInterrupt:
             return {"status": "interrupted", "frames": done}
         return {"status": "ok", "frames": done}
-    return {"status": "ok", "value": value, "pid": os.getpid(), "omp": os.environ.get("OMP_NUM_THREADS")}
+    return {"status": "ok", "value": value, "pid": os.getpid(), "omp": os.environ.get("OMP_NUM_THREADS"),
+            "nice": os.nice(0)}

@@ -121,7 +121,7 @@ def short_tmp():
 def test_ray_executor_isolates_a_crash(monkeypatch, short_tmp):
     """Also: the local runtime is its own, even where Ray's address file names another cluster (one
     started with ``ray start`` earlier, here a dead one): Ray would join that one without being told
-    ``local``, and refuse the CPU count."""
+    ``local``, and refuse the CPU count. Its tasks run at the driver's priority."""
     pytest.importorskip("ray", reason="Ray is the optional extra endoslam[cluster]")
     from slam.batch.executors import RayExecutor
 
@@ -134,6 +134,7 @@ def test_ray_executor_isolates_a_crash(monkeypatch, short_tmp):
     ends = {e.index: e.outcome for e in events if isinstance(e, Finished)}
     assert sorted(ends) == [0, 1, 2, 3]
     assert ends[0]["value"] == 1 and ends[3]["value"] == 2 and ends[0]["omp"] == "1"
+    assert ends[0]["nice"] == os.nice(0)      # the driver's priority, not Ray's 15 for workers
     assert ends[1]["status"] == "error" and "worker died" in ends[1]["message"]
     assert ends[2]["status"] == "timeout" and ends[2]["frames"] >= 5
 

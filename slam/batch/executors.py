@@ -395,10 +395,13 @@ class RayExecutor:
             return
         options = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
         try:
-            if self.address is None:   # "local": a runtime of our own, even when another is running or Ray's
-                # address file names one (Ray would join that one and refuse the CPU count)
+            if self.address is None:
+                # "local": a runtime of our own, even when another is running or Ray's address file
+                # names one (Ray would join that one and refuse the CPU count). Niceness 0: Ray runs
+                # its workers at 15, so any other process on the machine took their CPU (one busy
+                # loop made the 12 runs of tools/benchmark_evaluate.py 84 s instead of 65).
                 ray.init(address="local", num_cpus=self.workers * self.cpus_per_task,
-                         object_store_memory=128 * 1024 * 1024, **options)
+                         object_store_memory=128 * 1024 * 1024, _system_config={"worker_niceness": 0}, **options)
             else:
                 ray.init(address=self.address, **options)
         except Exception as err:  # noqa: BLE001 - Ray raises several kinds; the user needs one line
