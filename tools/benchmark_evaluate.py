@@ -2,7 +2,7 @@
 the workers spent tracking, and whether every ATE is the same.
 
     .venv/bin/python tools/benchmark_evaluate.py [--data DIR] [--out DIR] [--frames 40] [--size 320x256]
-        [--how sequential local ray] [--workers 2]
+        [--how sequential local ray] [--workers 2] [--repeat 1]
 
 The workload: 6 synthetic sequences (``slam synth``, scenarios rigid, breathing, scanning,
 deforming, loop, scanning; seeds 5001-5006; rendered into ``--data`` once) in both modes, 12 runs:
@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import subprocess
 import sys
 import time
@@ -86,6 +87,10 @@ def run_evaluate(data: Path, out: Path, executor: str, workers: int) -> dict:
             "at_once": workers, "ates": ates, "batch_wall_s": summary["batch"]["wall_s"]}
 
 
+def median(values: list[float]) -> float:
+    return float(statistics.median(values))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="cache/benchmark_evaluate", help="the sequences' folder (rendered once)")
@@ -94,34 +99,50 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", default="320x256")
     ap.add_argument("--how", nargs="+", default=["sequential", "local", "ray"], choices=["sequential", "local", "ray"])
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="passes over --how, alternating (the machine drifts: compare within a pass)")
     args = ap.parse_args(argv)
     data, out = Path(args.data) / f"{args.size}_n{args.frames}", Path(args.out)
     make_data(data, args.frames, parse_size(args.size))
-    results = {}
-    for how in args.how:
-        if how == "ray" and not ray_available():
-            print("ray: not installed (pip install 'endoslam[cluster]'), skipped")
-            continue
-        print(f"{how} ...", flush=True)
-        results[how] = (run_sequential(data, out / how) if how == "sequential"
-                        else run_evaluate(data, out / how, how, args.workers))
-    reference = results.get("sequential", next(iter(results.values())))["ates"]
-    print(f"\n12 runs (6 sequences x 2 modes, {args.frames} frames, {args.size}), {args.workers} workers\n")
+    hows = [h for h in args.how if h != "ray" or ray_available()]
+    if len(hows) < len(args.how):
+        print("ray: not installed (pip install 'endoslam[cluster]'), skipped")
+    passes: list[dict] = []
+    for k in range(args.repeat):
+        results = {}
+        for how in hows:
+            print(f"pass {k + 1}/{args.repeat}: {how} ...", flush=True)
+            results[how] = (run_sequential(data, out / how) if how == "sequential"
+                            else run_evaluate(data, out / how, how, args.workers))
+        passes.append(results)
+    first = passes[0]
+    reference = first.get("sequential", next(iter(first.values())))["ates"]
+    print(f"\n12 runs (6 sequences x 2 modes, {args.frames} frames, {args.size}), {args.workers} workers, "
+          f"{args.repeat} pass(es): median (min-max)\n")
     print("| how | wall s | tracking s | task s | runs at once | outside tasks s | share of wall | vs sequential | ATE equal |")
     print("|---|---|---|---|---|---|---|---|---|")
-    base = results.get("sequential", {}).get("wall_s")
-    for how, r in results.items():
-        outside = r["wall_s"] - r["task_s"] / r["at_once"]
-        same = all(abs(r["ates"][k] - v) <= 1e-9 * max(1.0, abs(v)) for k, v in reference.items())
-        speedup = "-" if base is None else f"{base / r['wall_s']:.2f}x"
-        print(f"| {how} | {r['wall_s']:.1f} | {r['tracking_s']:.1f} | {r['task_s']:.1f} | {r['at_once']} | "
-              f"{outside:.1f} | {100 * outside / r['wall_s']:.0f} % | {speedup} | {'yes' if same else 'NO'} |")
-    if "local" in results and "ray" in results:
-        extra = results["ray"]["wall_s"] - results["local"]["wall_s"]
-        print(f"\nRay against the local workers: {extra:+.1f} s ({100 * extra / results['ray']['wall_s']:+.0f} % of "
-              "Ray's wall time)")
+
+    def spread(values: list[float]) -> str:
+        text = f"{median(values):.1f}"
+        return text if len(values) == 1 else f"{text} ({min(values):.1f}-{max(values):.1f})"
+
+    for how in hows:
+        runs = [p[how] for p in passes]
+        outside = [r["wall_s"] - r["task_s"] / r["at_once"] for r in runs]
+        same = all(abs(r["ates"][k] - v) <= 1e-9 * max(1.0, abs(v)) for r in runs for k, v in reference.items())
+        speedup = "-" if "sequential" not in hows else \
+            f"{median([p['sequential']['wall_s'] / p[how]['wall_s'] for p in passes]):.2f}x"
+        print(f"| {how} | {spread([r['wall_s'] for r in runs])} | {spread([r['tracking_s'] for r in runs])} | "
+              f"{spread([r['task_s'] for r in runs])} | {runs[0]['at_once']} | {spread(outside)} | "
+              f"{100 * median(outside) / median([r['wall_s'] for r in runs]):.0f} % | {speedup} | "
+              f"{'yes' if same else 'NO'} |")
+    if "local" in hows and "ray" in hows:
+        extra = [p["ray"]["wall_s"] - p["local"]["wall_s"] for p in passes]
+        share = [100 * e / p["ray"]["wall_s"] for e, p in zip(extra, passes)]
+        print(f"\nRay against the local workers, per pass: {', '.join(f'{e:+.1f} s' for e in extra)}; median "
+              f"{median(extra):+.1f} s, {median(share):+.0f} % of Ray's wall time")
     (out / "benchmark_evaluate.json").write_text(json.dumps(
-        {how: {k: v for k, v in r.items() if k != "ates"} for how, r in results.items()}, indent=2))
+        [{how: {k: v for k, v in r.items() if k != "ates"} for how, r in p.items()} for p in passes], indent=2))
     return 0
 
 
