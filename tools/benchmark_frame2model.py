@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import os
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -142,7 +143,7 @@ def main() -> None:
             for method in args.methods:
                 jobs.append({"scenario": scenario, "seed": seed, "method": method, "data": str(data),
                              "extra": args.set, "out": str(out / "runs" / f"{scenario}_s{seed}_{method}")})
-    with ProcessPoolExecutor(args.workers) as pool:
+    with ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn")) as pool:
         results = list(pool.map(run_one, jobs))
     table = format_table(results, args.methods)
     settings = f"size {args.size}, frames {frames}, look {args.appearance or 'default'}, overrides {args.set or 'none'}"

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import os
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -89,7 +90,7 @@ def main() -> None:
                 for mode in args.modes:
                     jobs.append({"scenario": sc, "seed": seed, "mode": mode, "step": step, "data": str(data),
                                  "out": str(out / "runs" / f"{sc}_s{seed}_{mode}_step{step}"), "extra": args.set})
-    with ProcessPoolExecutor(args.workers) as pool:
+    with ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn")) as pool:
         results = list(pool.map(run_one, jobs))
     ate = {(r["scenario"], r["seed"], r["mode"], r["step"]): r for r in results}
     base = min(args.steps)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import os
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -199,7 +200,7 @@ def main() -> None:
     for job in {j["data"]: j for j in jobs}.values():
         if not (Path(job["data"]) / "groundtruth.txt").is_file():
             generate_job(job)
-    with ProcessPoolExecutor(args.workers) as pool:
+    with ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn")) as pool:
         results = list(pool.map(run_one, jobs))
     methods = args.methods
     if args.reuse:

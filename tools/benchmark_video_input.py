@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import os
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -74,7 +75,7 @@ def main() -> None:
                     jobs.append({"scenario": sc, "seed": seed, "mode": mode, "variant": variant, "data": str(data),
                                  "out": str(out / "runs" / f"{sc}_s{seed}_{mode}_{variant.replace(' ', '').replace(',', '_')}"),
                                  "extra": [*extra, *args.set]})
-    with ProcessPoolExecutor(args.workers) as pool:
+    with ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn")) as pool:
         results = list(pool.map(run_one, jobs))
     ate = {(r["scenario"], r["seed"], r["mode"], r["variant"]): r for r in results}
     head = ["sequence", "mode", *args.variants]

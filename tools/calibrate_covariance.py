@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import os
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -69,7 +70,7 @@ def main() -> None:
                 jobs.append({"data": str(data), "scenario": sc, "seed": seed, "frames": args.frames, "size": size,
                              "mode": mode, "out": str(out / "runs" / f"{sc}_s{seed}_{mode}")})
     # generate each sequence once: the frame2frame job of a sequence first, alone
-    with ProcessPoolExecutor(max_workers=args.workers) as pool:
+    with ProcessPoolExecutor(max_workers=args.workers, mp_context=mp.get_context("spawn")) as pool:
         first = list(pool.map(run_one, [j for j in jobs if j["mode"] == "frame2frame"]))
         second = list(pool.map(run_one, [j for j in jobs if j["mode"] == "frame2model"]))
     results = first + second

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import os
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -166,7 +167,7 @@ def main() -> None:
     jobs = [{"seed": s, "scenario": args.scenario, "frames": args.frames, "size": (w, h), "appearance": args.appearance,
              "out": args.out, "limit": args.closed_loop, "set": args.set, "tag": args.tag} for s in args.seeds]
     fn = run_open_loop if args.closed_loop is None else run_closed_loop
-    with ProcessPoolExecutor(args.workers) as pool:
+    with ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn")) as pool:
         results = list(pool.map(fn, jobs))
     head = (f"`python tools/cross_check.py --seeds {' '.join(map(str, args.seeds))} --appearance {args.appearance} "
             f"--scenario {args.scenario} --frames {args.frames} --size {args.size}"
