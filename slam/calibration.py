@@ -13,7 +13,8 @@ them apart):
 
 A calibration and the frames it is used with must agree: :func:`fit_to_frames` scales a
 calibration made at an integer multiple (or fraction) of the frames' size and refuses one that
-fits no such factor; :func:`is_rectified` tells rectified calibrations (no distortion, no rotation
+fits no such factor (:func:`fit_calibration` logs the scaling, :func:`fit_camera` does the same for
+a rectified camera); :func:`is_rectified` tells rectified calibrations (no distortion, no rotation
 between the cameras) from raw ones.
 
 A raw calibration describes two distorted, unrectified pinhole cameras; turning it into the
@@ -459,6 +460,27 @@ def fit_calibration(calib: RawStereoCalibration, frame_size: tuple[int, int]) ->
         logging.getLogger("slam").info("%s: calibration made at %gx the frames' size: intrinsics scaled by %g",
                                        calib.name(), 1.0 / factor, factor)
     return fitted
+
+
+def fit_camera(camera: StereoCamera, frame_size: tuple[int, int], where: str,
+               max_factor: int = 4) -> StereoCamera:
+    """A rectified camera (a plain ``calibration.yaml``) at the frames' ``(width, height)``: as it
+    is when its size is theirs, scaled (and logged) when it is an integer multiple or fraction of
+    it up to ``max_factor``, the rule of :func:`fit_to_frames`; else DataError naming ``where``."""
+    import logging
+
+    W, H = int(frame_size[0]), int(frame_size[1])
+    cw, ch = int(camera.width), int(camera.height)
+    if (cw, ch) == (W, H):
+        return camera
+    for k in range(2, max_factor + 1):
+        if (cw, ch) == (k * W, k * H) or (k * cw, k * ch) == (W, H):
+            factor = W / cw
+            logging.getLogger("slam").info("%s: calibration made at %gx the frames' size: intrinsics scaled by %g",
+                                           where, 1.0 / factor, factor)
+            return camera.scaled(W, H)
+    raise DataError(f"{where}: calibration for {cw}x{ch} images does not fit frames of {W}x{H} "
+                    f"(neither equal nor an integer multiple or fraction of them)")
 
 
 def fit_to_frames(calib: RawStereoCalibration, frame_size: tuple[int, int],

@@ -22,7 +22,7 @@ import copy
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Iterator, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -198,6 +198,22 @@ def read_rgb(path: Path) -> np.ndarray:
     """An image file as ``(H, W, 3)`` uint8 RGB; DataError naming the file if unreadable."""
     img = _imread(path, cv2.IMREAD_COLOR)
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+#: how many of its first frames a reader tries for the frames' size before it gives up
+SIZE_PROBE_FRAMES = 5
+
+
+def first_readable_size(paths: Sequence[Path], tries: int = SIZE_PROBE_FRAMES) -> Optional[tuple[int, int]]:
+    """``(width, height)`` of the first image among the first ``tries`` of ``paths`` that reads,
+    or None when none of them does (those frames then fail one by one when they are read)."""
+    for path in list(paths)[:tries]:
+        try:
+            img = _imread(path, cv2.IMREAD_UNCHANGED)
+        except DataError:
+            continue
+        return int(img.shape[1]), int(img.shape[0])
+    return None
 
 
 def read_mask(path: Path, shape: Optional[tuple[int, ...]] = None) -> np.ndarray:

@@ -30,7 +30,7 @@ from typing import Optional
 
 import numpy as np
 
-from slam.calibration import (CALIBRATION_NAMES, RawStereoCalibration, fit_calibration, is_rectified,
+from slam.calibration import (CALIBRATION_NAMES, RawStereoCalibration, fit_calibration, fit_camera, is_rectified,
                               read_calibration, rectified_camera)
 from slam.datasets.config import DataConfig
 from slam.datasets.dataset import RawFrame, StereoDataset, load_groundtruth
@@ -102,15 +102,7 @@ def calibration_processor(calib: RawStereoCalibration | StereoCamera, frame_size
         if config.rectified == "no":
             raise ConfigError(f"{where}: data.rectified is no, but the calibration is a rectified camera "
                               "(fx fy cx cy baseline_mm)")
-        camera = calib
-        if (camera.width, camera.height) != tuple(frame_size):
-            w, h = frame_size
-            if camera.width * h != camera.height * w:
-                raise DataError(f"{where}: calibration for {camera.width}x{camera.height} images does not fit "
-                                f"frames of {w}x{h}")
-            log.info("%s: calibration for %dx%d scaled to the frames' %dx%d", where, camera.width, camera.height, w, h)
-            camera = camera.scaled(w, h)
-        return ResizeOnly(camera, out)
+        return ResizeOnly(fit_camera(calib, frame_size, where), out)
     fitted = fit_calibration(calib, frame_size)
     rectified = is_rectified(fitted) if config.rectified == "auto" else config.rectified == "yes"
     if rectified and is_rectified(fitted):

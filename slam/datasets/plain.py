@@ -8,15 +8,18 @@
       groundtruth.txt            optional, TUM, metres, T_wc of the left camera, one row per frame
       masks/<left file name>     optional, non-zero = tissue, 0 = instrument
 
-Images are only resized (``rectified: no`` is not supported for this layout).
+Images are only resized (``rectified: no`` is not supported for this layout). The calibration's
+``width`` x ``height`` must be the size of the first readable left image or an integer multiple or
+fraction of it (then scaled, :func:`slam.calibration.fit_camera`); any other is a DataError naming
+``calibration.yaml``.
 """
 from __future__ import annotations
 
 from pathlib import Path
 
-from slam.calibration import read_plain_yaml
+from slam.calibration import fit_camera, read_plain_yaml
 from slam.datasets.config import DataConfig
-from slam.datasets.dataset import RawFrame, StereoDataset, load_groundtruth, read_mask, read_rgb
+from slam.datasets.dataset import RawFrame, StereoDataset, first_readable_size, load_groundtruth, read_mask, read_rgb
 from slam.errors import ConfigError, DataError
 from slam.rectification import ResizeOnly
 
@@ -54,7 +57,11 @@ class PlainDataset(StereoDataset):
             raise DataError(f"{left_dir} has {len(self._left)} images but {right_dir} has {len(self._right)}")
         if not self._left:
             raise DataError(f"{left_dir}: no images (*.png, *.jpg, *.jpeg)")
-        camera = read_plain_yaml(path / CALIB_FILE)
+        calib_path = path / CALIB_FILE
+        camera = read_plain_yaml(calib_path)
+        size = first_readable_size(self._left)
+        if size is not None:        # none of the first frames reads: they fail one by one later
+            camera = fit_camera(camera, size, str(calib_path))
         processor = ResizeOnly(camera, (config.width, config.height))
         n = len(self._left)
         stamps, poses = load_groundtruth(path / GT_FILE, n, None, config.fps)

@@ -14,7 +14,9 @@
 The frames are already rectified (``rectified: auto`` = yes): the rectified camera and ``R1`` are
 those that rectifying ``StereoCalibration.ini`` in ``rectify_mode`` gives (the StereoMIS
 pre-processing rectified with OpenCV, alpha = 0), and frames are only resized. With
-``rectified: no`` the PNGs are treated as raw views and rectified.
+``rectified: no`` the PNGs are treated as raw views and rectified. The calibration is fitted to
+the size of the first readable left frame (:func:`slam.calibration.fit_to_frames`: an integer
+multiple is scaled, any other size is a DataError naming the ``.ini``).
 """
 from __future__ import annotations
 
@@ -23,9 +25,10 @@ import math
 import re
 from pathlib import Path
 
-from slam.calibration import read_stereomis_ini
+from slam.calibration import fit_calibration, read_stereomis_ini
 from slam.datasets.config import DataConfig
-from slam.datasets.dataset import RawFrame, StereoDataset, load_groundtruth, read_mask, read_rgb, read_scaled_uint
+from slam.datasets.dataset import (RawFrame, StereoDataset, first_readable_size, load_groundtruth, read_mask, read_rgb,
+                                  read_scaled_uint)
 from slam.errors import DataError
 from slam.rectification import make_rectifier
 
@@ -102,6 +105,9 @@ class StereoMISDataset(StereoDataset):
         self._pairs = list_stereo_pngs(frames_dir)
         self._frames_dir = frames_dir
         calib = read_stereomis_ini(path / CALIB_FILE)
+        size = first_readable_size([frames_dir / left for left, _ in self._pairs])
+        if size is not None:        # none of the first frames reads: they fail one by one later
+            calib = fit_calibration(calib, size)
         processor = make_rectifier(calib, config.rectify_mode, (config.width, config.height),
                                    already_rectified=wants_prerectified(config, True))
         n = len(self._pairs)

@@ -40,11 +40,13 @@ def frame_size_of(path: Path) -> tuple[int, int]:
 
 
 def stereo_layout_of(frame_size: tuple[int, int], calib_size: tuple[int, int] | None, requested: str,
-                     where: str) -> str:
+                     where: str, video: str = "the video") -> str:
     """How a video frame of ``(width, height)`` holds its two views: ``requested`` unless
     ``auto``; else the layout whose view size is the calibration's (or an integer multiple or
     fraction of it, keeping its aspect); without a size in the calibration, the frame's aspect
-    ratio (twice as tall as wide an image is top-bottom: endoscope views are wider than tall)."""
+    ratio (twice as tall as wide an image is top-bottom: endoscope views are wider than tall).
+    A calibration size that fits neither layout is a DataError naming ``where`` (the calibration
+    file) and ``video``."""
     if requested in STEREO_LAYOUTS:
         return requested
     W, H = frame_size
@@ -56,8 +58,9 @@ def stereo_layout_of(frame_size: tuple[int, int], calib_size: tuple[int, int] | 
         if len(fits) == 1:
             return fits[0]
         if not fits:
-            raise DataError(f"{where}: a {W}x{H} video frame holds neither two {cw}x{ch} views one above the other "
-                            "nor side by side (--stereo-layout, or another calibration)")
+            raise DataError(f"{where}: calibration for {cw}x{ch} views does not fit the {W}x{H} frames of {video}: "
+                            "they hold neither two such views (or an integer multiple or fraction of them) one above "
+                            "the other nor side by side (--stereo-layout, or another calibration)")
     return "top-bottom" if H > W * 0.7 else "side-by-side"
 
 

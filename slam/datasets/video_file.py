@@ -60,7 +60,8 @@ class VideoFileDataset(StereoDataset):
         calib_path = find_calibration(folder, config)
         calib = read_calibration(calib_path)
         calib_size = calib.image_size if isinstance(calib, RawStereoCalibration) else (calib.width, calib.height)
-        layout = stereo_layout_of(frame_size_of(video_path), calib_size, config.stereo_layout, str(video_path))
+        layout = stereo_layout_of(frame_size_of(video_path), calib_size, config.stereo_layout, str(calib_path),
+                                  str(video_path))
         video = StackedStereoVideo(video_path, layout)
         try:
             processor = calibration_processor(calib, video.view_size, config, str(calib_path))

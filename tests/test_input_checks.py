@@ -1,0 +1,189 @@
+"""The input layer's checks (issue 48): a calibration made for another image size is refused when
+the sequence opens, in every layout and calibration format, and one made at an exact integer
+multiple of the frames' size is scaled. Sequences of 3 frames at 160x128 (``synth_dir``), the
+calibrations written here."""
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from slam.calibration import RawStereoCalibration, read_stereomis_ini
+from slam.datasets import open_dataset
+from slam.datasets.config import DataConfig
+from slam.errors import DataError
+from tests.test_calibration import write_ini, write_scared_yaml
+
+SIZE = (160, 128)
+FORMATS = ("ini", "scared yaml", "opencv yaml", "plain yaml", "json")
+#: the calibration file each format has in a sequence folder that names it itself
+FILE_NAMES = {"ini": "StereoCalibration.ini", "scared yaml": "endoscope_calibration.yaml",
+              "opencv yaml": "endoscope_calibration.yaml", "plain yaml": "calibration.yaml", "json": "calibration.json"}
+#: (layout, calibration format): each layout with every format it reads
+LAYOUT_FORMATS = ([("stereomis", "ini"), ("stereomis_raw", "ini"), ("scared", "scared yaml"), ("scared", "opencv yaml"),
+                   ("plain", "plain yaml")] + [("frames", f) for f in FORMATS] + [("video", f) for f in FORMATS])
+
+
+def native(**kw) -> DataConfig:
+    """The frames at their own size (DataConfig's default resizes them)."""
+    return DataConfig(width=0, height=0, **kw)
+
+
+def calibration_at(calib: RawStereoCalibration, size: tuple[int, int]) -> RawStereoCalibration:
+    """``calib`` (made for ``SIZE``) as made for images of ``size``: intrinsics resampled with the
+    pixel-centre convention (``c' + 0.5 = s (c + 0.5)``)."""
+    sx, sy = size[0] / SIZE[0], size[1] / SIZE[1]
+    Ks = []
+    for K in (calib.K1, calib.K2):
+        K = K.copy()
+        K[0, 0], K[1, 1] = K[0, 0] * sx, K[1, 1] * sy
+        K[0, 2], K[1, 2] = (K[0, 2] + 0.5) * sx - 0.5, (K[1, 2] + 0.5) * sy - 0.5
+        Ks.append(K)
+    return RawStereoCalibration(Ks[0], calib.D1, Ks[1], calib.D2, calib.R, calib.T, size)
+
+
+def write_calibration(fmt: str, path: Path, calib: RawStereoCalibration) -> Path:
+    """``calib`` written to ``path`` in format ``fmt`` (the SCARED yaml without its image size,
+    the plain yaml as the rectified camera of the left view)."""
+    c = calib
+    if fmt == "ini":
+        return write_ini(path, c.K1, c.D1, c.K2, c.D2, c.R, c.T, c.image_size)
+    if fmt in ("scared yaml", "opencv yaml"):
+        return write_scared_yaml(path, c.K1, c.D1, c.K2, c.D2, c.R, c.T,
+                                 size=c.image_size if fmt == "opencv yaml" else None)
+    if fmt == "plain yaml":
+        fx, fy, cx, cy = (float(v) for v in (c.K1[0, 0], c.K1[1, 1], c.K1[0, 2], c.K1[1, 2]))
+        path.write_text(f"fx: {fx!r}\nfy: {fy!r}\ncx: {cx!r}\ncy: {cy!r}\nbaseline_mm: {abs(float(c.T[0]))!r}\n"
+                        f"width: {c.image_size[0]}\nheight: {c.image_size[1]}\n")
+        return path
+    data = {"left": {"K": c.K1.tolist(), "D": c.D1.tolist()}, "right": {"K": c.K2.tolist(), "D": c.D2.tolist()},
+            "R": c.R.tolist(), "T": c.T.tolist(), "image_size": list(c.image_size)}
+    path.write_text(json.dumps(data))
+    return path
+
+
+def copy_pngs(src: Path, left_dir: Path, right_dir: Path) -> None:
+    """The StereoMIS frames of ``src`` into two folders, named by frame number."""
+    left_dir.mkdir(parents=True)
+    right_dir.mkdir(parents=True)
+    for png in sorted((src / "video_frames").glob("*.png")):
+        side = left_dir if png.stem.endswith("l") else right_dir
+        shutil.copy(png, side / f"{png.stem[:-1]}.png")
+
+
+def make_sequence(layout: str, fmt: str, root: Path, rigid: Path, raw: Path, size: tuple[int, int]
+                  ) -> tuple[Path, DataConfig, Path]:
+    """A ``layout`` sequence in ``root`` whose calibration (format ``fmt``) was made for images of
+    ``size``; returns what to open, the config to open it with and the calibration file."""
+    src = raw if layout in ("stereomis_raw", "scared", "video") else rigid
+    calib = calibration_at(read_stereomis_ini(src / "StereoCalibration.ini"), size)
+    video = next(raw.glob("*.mp4"))
+    root.mkdir(parents=True)
+    config = native()
+    data = root
+    if layout == "stereomis":
+        shutil.copytree(rigid / "video_frames", root / "video_frames")
+    elif layout == "stereomis_raw":
+        shutil.copy(video, root / video.name)
+    elif layout == "scared":
+        (root / "data").mkdir()
+        shutil.copy(video, root / "data" / "rgb.mp4")
+    elif layout == "plain":
+        copy_pngs(rigid, root / "left", root / "right")
+    elif layout == "frames":
+        copy_pngs(rigid, root / "left_image", root / "right_image")
+    else:                                       # the video given as a file, its calibration named
+        data = root / video.name
+        shutil.copy(video, data)
+    if layout == "video":
+        calib_path = write_calibration(fmt, root / ("rig" + Path(FILE_NAMES[fmt]).suffix), calib)
+        config = native(calibration=str(calib_path))
+    else:
+        calib_path = write_calibration(fmt, root / FILE_NAMES[fmt], calib)
+    return data, config, calib_path
+
+
+@pytest.fixture(scope="module")
+def sources(synth_dir) -> tuple[Path, Path]:
+    """A rectified sequence (StereoMIS layout) and a raw one (one top-bottom mp4), 3 frames each."""
+    return synth_dir("rigid", 3, SIZE, seed=3), synth_dir("rigid", 3, SIZE, seed=3, raw=True)
+
+
+@pytest.mark.parametrize("layout, fmt", LAYOUT_FORMATS)
+def test_a_calibration_at_twice_the_size_is_scaled(sources, tmp_path, caplog, layout, fmt):
+    """Made at 2x the frames' size: the intrinsics are halved (and the log says so), the camera is
+    the one of the calibration made for the frames."""
+    rigid, raw = sources
+    data, config, _ = make_sequence(layout, fmt, tmp_path / "at1", rigid, raw, SIZE)
+    ref = open_dataset(data, config)
+    assert ref.layout == layout
+    data, config, calib_path = make_sequence(layout, fmt, tmp_path / "at2", rigid, raw, (2 * SIZE[0], 2 * SIZE[1]))
+    with caplog.at_level(logging.INFO, logger="slam"):
+        ds = open_dataset(data, config)
+    assert ds.layout == layout
+    np.testing.assert_allclose(ds.camera.K, ref.camera.K, atol=1e-6)
+    assert ds.camera.baseline_mm == pytest.approx(ref.camera.baseline_mm)
+    assert f"{calib_path}: calibration made at 2x the frames' size: intrinsics scaled by 0.5" in caplog.text
+    assert ds.frame(0).left.shape == (SIZE[1], SIZE[0], 3)
+    ref.close()
+    ds.close()
+
+
+@pytest.mark.parametrize("size", [(240, 192), (1000, 1000)], ids=["1.5x", "1000x1000"])
+@pytest.mark.parametrize("layout, fmt", LAYOUT_FORMATS)
+def test_a_calibration_for_another_size_is_refused_on_opening(sources, tmp_path, layout, fmt, size):
+    """Neither the frames' size nor an integer multiple of it: a one-line DataError naming the
+    calibration file when the sequence opens, before any frame is tracked."""
+    rigid, raw = sources
+    data, config, calib_path = make_sequence(layout, fmt, tmp_path / "seq", rigid, raw, size)
+    with pytest.raises(DataError) as err:
+        open_dataset(data, config)
+    message = str(err.value)
+    assert "\n" not in message and message.startswith(f"{calib_path}: ")
+    assert "does not fit" in message or "fits no calibration size" in message
+
+
+def test_the_issue_s_run_stops_before_the_first_frame(sources, tmp_path, capsys):
+    """``slam run`` on a StereoMIS folder whose .ini says 1000x1000: exit 2 with one line, where it
+    used to track, fail every frame and exit 0."""
+    from slam.cli import main
+
+    rigid, _ = sources
+    seq = tmp_path / "seq"
+    shutil.copytree(rigid, seq)
+    ini = seq / "StereoCalibration.ini"
+    ini.write_text("\n".join("res_x = 1000" if line.startswith("res_x") else "res_y = 1000" if line.startswith("res_y")
+                             else line for line in ini.read_text().splitlines()) + "\n")
+    assert main(["run", str(seq), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"slam run: error: {ini}: calibration for 1000x1000 images does not fit frames of 160x128 " \
+                  "(neither equal nor an integer multiple or fraction of them)"
+
+
+@pytest.mark.parametrize("layout", ["stereomis", "plain"])
+def test_the_frame_size_comes_from_the_first_readable_frame(sources, tmp_path, layout):
+    """An unreadable first PNG: the size comes from the next readable one (a calibration that does
+    not fit is still refused); the sequence opens and its bad frames fail one by one when read, as
+    they do when none of the first frames reads."""
+    rigid, raw = sources
+    data, config, _ = make_sequence(layout, "ini" if layout == "stereomis" else "plain yaml", tmp_path / "seq",
+                                    rigid, raw, SIZE)
+    name = "video_frames/{:06d}l.png" if layout == "stereomis" else "left/{:06d}.png"
+    (data / name.format(0)).write_bytes(b"not a png")
+    ds = open_dataset(data, config)
+    with pytest.raises(DataError, match="cannot read image"):
+        ds.frame(0)
+    assert ds.frame(1).left.shape == (SIZE[1], SIZE[0], 3)
+    for k in (1, 2):
+        (data / name.format(k)).write_bytes(b"")
+    assert open_dataset(data, config).num_frames_total == 3        # none reads: opens all the same
+    bad, _, calib_path = make_sequence(layout, "ini" if layout == "stereomis" else "plain yaml", tmp_path / "bad",
+                                       rigid, raw, (1000, 1000))
+    (bad / name.format(0)).write_bytes(b"not a png")
+    with pytest.raises(DataError, match=f"{calib_path}: calibration for 1000x1000 images does not fit"):
+        open_dataset(bad, config)
