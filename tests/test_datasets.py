@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import tarfile
 from pathlib import Path
 
@@ -386,27 +387,55 @@ def test_video_cannot_be_opened(tmp_path):
     assert str(root / "recording.mp4") in one_line(err) and "cannot open video" in str(err.value)
 
 
-def test_groundtruth_shorter_than_frames(tmp_path):
+def gt_warnings(caplog) -> list[str]:
+    """The one-line warnings the readers logged (``slam`` logger) since the last call."""
+    lines = [r.getMessage() for r in caplog.records if r.name == "slam" and r.levelno == logging.WARNING]
+    caplog.clear()
+    assert all("\n" not in line for line in lines)
+    return lines
+
+
+@pytest.mark.filterwarnings("error")       # a warning is a log line, not a Python UserWarning
+def test_groundtruth_shorter_than_frames(tmp_path, caplog):
     """Another pose count than frames: the poses are associated by timestamp (the frames at
     data.fps from the first pose), never by index; frames without a pose within half a frame
-    period get none; timestamps that meet no frame are a one-line error."""
+    period get none, and one log line says how many; timestamps that meet no frame are a
+    one-line error."""
+    caplog.set_level(logging.WARNING, logger="slam")
     root = make_stereomis(tmp_path / "seq", n=6, gt=False)
+    gt = root / "groundtruth.txt"
     poses = random_poses(8)
-    write_tum(root / "groundtruth.txt", 5.0 + np.arange(4) * 0.04, poses[:4])
-    with pytest.warns(UserWarning, match="2 of 6 frames have no ground-truth pose"):
-        ds = open_dataset(root, native())
+    write_tum(gt, 5.0 + np.arange(4) * 0.04, poses[:4])
+    ds = open_dataset(root, native())
+    assert gt_warnings(caplog) == [f"{gt}: 2 of 6 frames have no ground-truth pose within half a frame period "
+                                   "(left out of the evaluation)"]
     np.testing.assert_allclose(ds.gt_poses[:4], poses[:4], atol=1e-6)
     assert np.isnan(ds.gt_poses[4:]).all()
-    write_tum(root / "groundtruth.txt", 5.0 + np.arange(8) * 0.04, poses)
+    write_tum(gt, 5.0 + np.arange(8) * 0.04, poses)
     ds = open_dataset(root, native())  # longer: the frames' times pick theirs
+    assert gt_warnings(caplog) == []
     np.testing.assert_allclose(ds.gt_poses, poses[:6], atol=1e-6)
-    write_tum(root / "groundtruth.txt", 5.0 + np.arange(8) * 0.02, poses)      # at 50 fps: every second one
-    with pytest.warns(UserWarning, match="have no ground-truth pose"):
-        ds = open_dataset(root, native())
+    write_tum(gt, 5.0 + np.arange(8) * 0.02, poses)      # at 50 fps: every second one
+    ds = open_dataset(root, native())
+    assert [line.split(": ", 1)[1][:13] for line in gt_warnings(caplog)] == ["1 of 6 frames"]
     np.testing.assert_allclose(ds.gt_poses[:4], poses[0:8:2], atol=1e-6)
-    write_tum(root / "groundtruth.txt", np.arange(4) * 4e7, poses[:4])        # nanoseconds: only the first frame meets one
-    with pytest.warns(UserWarning, match="5 of 6 frames have no ground-truth pose"):
-        open_dataset(root, native())
+    write_tum(gt, np.arange(4) * 4e7, poses[:4])        # nanoseconds: only the first frame meets one
+    open_dataset(root, native())
+    assert [line.split(": ", 1)[1][:13] for line in gt_warnings(caplog)] == ["5 of 6 frames"]
+
+
+@pytest.mark.filterwarnings("error")
+def test_scared_poses_past_the_last_frame_are_dropped_with_one_log_line(tmp_path, caplog):
+    caplog.set_level(logging.WARNING, logger="slam")
+    root = tmp_path / "keyframe_1"
+    T_cw = make_scared(root, n=6)
+    frame_data = root / "data" / "frame_data"
+    for i in (6, 7):
+        (frame_data / f"frame_data{i:06d}.json").write_text((frame_data / "frame_data000005.json").read_text())
+    ds = open_dataset(root, native(rectify_mode="pseudo"))
+    assert gt_warnings(caplog) == [f"{frame_data}: 8 poses for 6 frames; ignoring the last 2"]
+    np.testing.assert_allclose(ds.gt_poses, np.linalg.inv(T_cw), atol=1e-9)
+    ds.close()
 
 
 def test_bad_config(tmp_path):

@@ -10,16 +10,19 @@ in which ``frame(0)`` is sequence frame 2. ``ds.indices`` maps view positions to
 indices, and ``StereoFrame.index`` is always the sequence index. A freshly opened dataset is a
 view of all frames.
 
-Ground truth. One pose per frame, in order. A ground-truth file with fewer poses than the
-sequence has frames is a DataError naming it; with more poses, the extra trailing poses are
-dropped with a warning (recordings often log kinematics slightly past the last video frame, and
-the frames are what is processed). Poses are ``T_wc`` of the *original* left camera in mm, as in
+Ground truth. A TUM file with one pose per frame gives the frames' poses in order; with another
+count its poses are associated by timestamp (:func:`load_groundtruth`), frames without one
+within half a frame period getting NaN poses and a warning. SCARED's per-frame poses
+(:func:`match_groundtruth`) must be one per frame: fewer is a DataError naming them, extra
+trailing ones are dropped with a warning (recordings often log kinematics slightly past the last
+video frame, and the frames are what is processed). Warnings go to the ``slam`` logger, one line
+each (not ``warnings.warn``, whose output names a source line). Poses are ``T_wc`` of the *original* left camera in mm, as in
 the files; the VO's rectified-camera poses convert with ``R1`` (see :mod:`slam.rectification`).
 """
 from __future__ import annotations
 
 import copy
-import warnings
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Optional, Sequence
@@ -33,6 +36,8 @@ from slam.datasets.masks import combine_masks, specular_mask
 from slam.datasets.selection import parse_frames
 from slam.errors import DataError
 from slam.tum import read_tum
+
+log = logging.getLogger("slam")
 
 #: the frame rate assumed where neither the data nor ``data.fps`` gives one
 DEFAULT_FPS = 25.0
@@ -268,8 +273,8 @@ def match_groundtruth(source: str, stamps: Optional[np.ndarray], poses: np.ndarr
     if len(poses) < n_frames:
         raise DataError(f"{source}: {len(poses)} poses for {n_frames} frames (need one pose per frame)")
     if len(poses) > n_frames:
-        warnings.warn(f"{source}: {len(poses)} poses for {n_frames} frames; ignoring the last {len(poses) - n_frames}",
-                      stacklevel=3)
+        log.warning("%s: %d poses for %d frames; ignoring the last %d", source, len(poses), n_frames,
+                    len(poses) - n_frames)
         poses = poses[:n_frames]
         stamps = None if stamps is None else stamps[:n_frames]
     return stamps, poses
@@ -315,6 +320,6 @@ def associate_poses(source: str, gt_stamps: np.ndarray, poses: np.ndarray, frame
         raise DataError(f"{source}: no ground-truth pose within half a frame period of any frame (timestamps in "
                         f"another unit or clock? give the frames' timestamps.txt or --fps)")
     if not found.all():
-        warnings.warn(f"{source}: {int((~found).sum())} of {len(found)} frames have no ground-truth pose within "
-                      "half a frame period (left out of the evaluation)", stacklevel=3)
+        log.warning("%s: %d of %d frames have no ground-truth pose within half a frame period (left out of the "
+                    "evaluation)", source, int((~found).sum()), len(found))
     return out
