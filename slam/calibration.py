@@ -21,8 +21,9 @@ A raw calibration describes two distorted, unrectified pinhole cameras; turning 
 rectified :class:`~vo.camera.StereoCamera` the VO core works with is the job of
 :mod:`slam.rectification`. Lengths are millimetres throughout.
 
-Every missing, unreadable or malformed file raises :class:`slam.errors.DataError` with a
-one-line message naming the file and the problem.
+Every missing, unreadable, empty or malformed file raises :class:`slam.errors.DataError` with a
+one-line message naming the file and the problem (``<file>: empty calibration file`` for zero
+bytes or whitespace only, in every format: :func:`calibration_file`).
 """
 from __future__ import annotations
 
@@ -116,9 +117,7 @@ def read_stereomis_ini(path: str | Path) -> RawStereoCalibration:
     ``k1 k2 p1 p2 k3 k4 k5 k6``; missing ``kc_5..kc_7`` default to 0). The right section also holds
     ``T_0..T_2`` (mm) and ``R_0..R_8`` (row-major) with ``X_right = R X_left + T``.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: calibration file not found")
+    path = calibration_file(path)
     parser = configparser.ConfigParser(strict=False, interpolation=None)
     try:
         with open(path, encoding="utf-8", errors="replace") as fh:
@@ -186,9 +185,7 @@ def read_scared_yaml(path: str | Path, image_size: Optional[Sequence[int]] = Non
     """
     import cv2
 
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: calibration file not found")
+    path = calibration_file(path)
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except Exception as exc:  # cv2.error, or SystemError wrapping it (OpenCV 5 bindings)
@@ -293,9 +290,7 @@ def read_plain_yaml(path: str | Path) -> StereoCamera:
     """
     import yaml
 
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: calibration file not found")
+    path = calibration_file(path)
     try:
         with open(path, encoding="utf-8") as fh:
             data = yaml.safe_load(fh)
@@ -346,9 +341,7 @@ def read_json_calibration(path: str | Path) -> RawStereoCalibration:
     """
     import json
 
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: calibration file not found")
+    path = calibration_file(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (ValueError, OSError, UnicodeError) as exc:
@@ -407,9 +400,7 @@ def read_calibration(path: str | Path) -> RawStereoCalibration | StereoCamera:
     ``.ini``, this project's ``.json``, or a ``.yaml``/``.yml``/``.xml`` holding either OpenCV's
     ``M1 D1 M2 D2 R T`` (SCARED; a raw calibration) or ``fx fy cx cy baseline_mm`` (a plain,
     rectified camera)."""
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: calibration file not found")
+    path = calibration_file(path)
     suffix = path.suffix.lower()
     if suffix == ".ini":
         return read_stereomis_ini(path)
@@ -520,6 +511,22 @@ def fit_to_frames(calib: RawStereoCalibration, frame_size: tuple[int, int],
             return _scaled(fitted, 1.0 / scale, (W, H)), 1.0 / scale
     raise DataError(f"{where}: its principal point ({cx:.0f}, {cy:.0f}) fits no calibration size for frames "
                     f"of {W}x{H} (expected near ({W / 2:.0f}, {H / 2:.0f}) or an integer multiple of it)")
+
+
+def calibration_file(path: str | Path) -> Path:
+    """``path`` as a Path once it is known to hold something: DataError naming it when it is
+    missing, unreadable or empty (zero bytes or whitespace only; every reader says so the same way
+    rather than as a missing section or key)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: calibration file not found")
+    try:
+        content = path.read_bytes()
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read calibration file ({exc.strerror or exc})") from None
+    if not content.strip():
+        raise DataError(f"{path}: empty calibration file")
+    return path
 
 
 def _one_line(exc: BaseException) -> str:

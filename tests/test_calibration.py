@@ -7,7 +7,8 @@ import cv2
 import numpy as np
 import pytest
 
-from slam.calibration import RawStereoCalibration, read_plain_yaml, read_scared_yaml, read_stereomis_ini
+from slam.calibration import (RawStereoCalibration, read_calibration, read_json_calibration, read_plain_yaml,
+                              read_scared_yaml, read_stereomis_ini)
 from slam.errors import DataError
 from slam.rectification import (
     ResizeOnly,
@@ -351,3 +352,19 @@ def test_resize_only():
     assert ResizeOnly(cam).camera is cam
     assert resolve_output_size((64, 48), (32, 0)) == (32, 24)
     assert resolve_output_size((64, 48), (0, 0)) == (64, 48)
+
+
+@pytest.mark.parametrize("content", ["", "  \n\t\n"], ids=["zero bytes", "whitespace"])
+@pytest.mark.parametrize("name, reader", [
+    ("StereoCalibration.ini", read_stereomis_ini), ("endoscope_calibration.yaml", read_scared_yaml),
+    ("calibration.yaml", read_plain_yaml), ("calibration.json", read_json_calibration),
+    ("c.ini", read_calibration), ("c.yaml", read_calibration), ("c.yml", read_calibration),
+    ("c.xml", read_calibration), ("c.json", read_calibration),
+])
+def test_an_empty_calibration_file_says_so(tmp_path, name, reader, content):
+    """Not a missing section, key or matrix, nor a parse error: one line, the same in every format."""
+    path = tmp_path / name
+    path.write_text(content)
+    with pytest.raises(DataError) as err:
+        reader(path)
+    assert str(err.value) == f"{path}: empty calibration file"

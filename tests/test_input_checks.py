@@ -187,3 +187,13 @@ def test_the_frame_size_comes_from_the_first_readable_frame(sources, tmp_path, l
     (bad / name.format(0)).write_bytes(b"not a png")
     with pytest.raises(DataError, match=f"{calib_path}: calibration for 1000x1000 images does not fit"):
         open_dataset(bad, config)
+
+
+@pytest.mark.parametrize("layout, fmt", LAYOUT_FORMATS)
+def test_an_empty_calibration_file_says_so_in_every_layout(sources, tmp_path, layout, fmt):
+    rigid, raw = sources
+    data, config, calib_path = make_sequence(layout, fmt, tmp_path / "seq", rigid, raw, SIZE)
+    calib_path.write_bytes(b"")
+    with pytest.raises(DataError) as err:
+        open_dataset(data, config)
+    assert str(err.value) == f"{calib_path}: empty calibration file"
