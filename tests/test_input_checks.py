@@ -197,3 +197,67 @@ def test_an_empty_calibration_file_says_so_in_every_layout(sources, tmp_path, la
     with pytest.raises(DataError) as err:
         open_dataset(data, config)
     assert str(err.value) == f"{calib_path}: empty calibration file"
+
+
+def calibration_warnings(caplog) -> list[str]:
+    lines = [r.getMessage() for r in caplog.records if r.name == "slam" and r.levelno >= logging.WARNING]
+    caplog.clear()
+    return lines
+
+
+def test_a_lone_calibration_candidate_is_taken_and_named(sources, tmp_path, caplog):
+    """A video (folder, or file) or frame folders without --calibration and without a known
+    calibration name take the only .ini/.json/.yaml beside them, and one warning says which; a
+    known name or --calibration take theirs silently."""
+    rigid, raw = sources
+    caplog.set_level(logging.INFO, logger="slam")
+    calib = read_stereomis_ini(raw / "StereoCalibration.ini")
+    video = next(raw.glob("*.mp4"))
+    folder = tmp_path / "video"
+    folder.mkdir()
+    shutil.copy(video, folder / video.name)
+    rig = write_calibration("json", folder / "rig.json", calib)
+    expected = f"using calibration {rig} (the only calibration file beside the video; --calibration FILE to choose)"
+    for data in (folder, folder / video.name):
+        ds = open_dataset(data, native())
+        assert ds.layout == "video" and ds.calibration_path == rig       # an mp4 without its .ini: not StereoMIS raw
+        assert calibration_warnings(caplog) == [expected]
+    open_dataset(folder / video.name, native(calibration=str(rig)))
+    assert calibration_warnings(caplog) == []
+    rig.rename(folder / "calibration.json")
+    open_dataset(folder, native())
+    assert calibration_warnings(caplog) == []
+    frames = tmp_path / "frames"
+    copy_pngs(rigid, frames / "left", frames / "right")
+    cam = write_calibration("plain yaml", frames / "camera.yaml", calibration_at(read_stereomis_ini(
+        rigid / "StereoCalibration.ini"), SIZE))
+    ds = open_dataset(frames, native())           # left/ right/ without calibration.yaml: not a plain folder
+    assert ds.layout == "frames" and ds.calibration_path == cam
+    assert calibration_warnings(caplog) == [f"using calibration {cam} (the only calibration file beside the frames; "
+                                            "--calibration FILE to choose)"]
+
+
+def test_a_lone_file_that_is_no_calibration_is_an_error_suggesting_the_option(sources, tmp_path, capsys):
+    rigid, raw = sources
+    video = next(raw.glob("*.mp4"))
+    folder = tmp_path / "video"
+    folder.mkdir()
+    shutil.copy(video, folder / video.name)
+    meta = folder / "metadata.json"
+    meta.write_text(json.dumps({"device": "endoscope", "fps": 25}))
+    expected = (f"{meta}: not a calibration file (missing 'R'); it was taken as the only .ini/.json/.yaml/.yml file "
+                "beside the video: name the calibration with --calibration FILE")
+    for data in (folder, folder / video.name):
+        with pytest.raises(DataError) as err:
+            open_dataset(data, native())
+        assert str(err.value) == expected
+    from slam.cli import main
+
+    assert main(["inspect", str(folder / video.name), "--out", str(tmp_path / "insp")]) == 2
+    assert capsys.readouterr().err.strip() == f"slam inspect: error: {expected}"
+    frames = tmp_path / "frames"
+    copy_pngs(rigid, frames / "left_image", frames / "right_image")
+    (frames / "notes.yaml").write_text("operator: someone\n")
+    with pytest.raises(DataError, match=r"notes.yaml: not a calibration file \(missing key 'fx'\); .* beside the "
+                                        "frames: name the calibration with --calibration FILE"):
+        open_dataset(frames, native())

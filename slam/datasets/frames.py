@@ -10,7 +10,8 @@ calibration file.
                                      with the side token stripped (Left_0001 / Right_0001), else
                                      by order when the counts agree
       endoscope_calibration.yaml     or StereoCalibration.ini, calibration.yaml, calibration.json
-                                     (slam.calibration.read_calibration), or data.calibration
+                                     (slam.calibration.read_calibration), or data.calibration, or
+                                     the only .ini/.json/.yaml/.yml (a warning names it)
       timestamps.txt                 optional: one timestamp per frame (seconds); else index / fps
       groundtruth.txt                optional, TUM, metres, T_wc of the original left camera
       masks/                         optional, per left frame (paired like the frames), non-zero = tissue
@@ -72,9 +73,23 @@ def find_stereo_folders(path: Path) -> Optional[tuple[Path, Path]]:
     return pairs[0]
 
 
-def find_calibration(path: Path, config: DataConfig) -> Path:
-    """``data.calibration`` if set, else the folder's calibration file (one of the known names, or
-    the only ``.ini`` / ``.json`` / ``.yaml`` file in it)."""
+#: files a sequence folder may hold that are never its calibration (a run's config, ``slam synth``'s
+#: description of the sequence)
+NOT_CALIBRATIONS = ("config.yaml", "synth.json")
+CANDIDATE_SUFFIXES = (".ini", ".json", ".yaml", ".yml")
+
+
+def calibration_candidates(path: Path) -> list[Path]:
+    """The files of folder ``path`` that may be its calibration (``.ini``, ``.json``, ``.yaml``,
+    ``.yml``; not :data:`NOT_CALIBRATIONS`), sorted by name."""
+    return [p for p in sorted(path.iterdir()) if p.is_file() and p.suffix.lower() in CANDIDATE_SUFFIXES
+            and p.name not in NOT_CALIBRATIONS]
+
+
+def find_calibration(path: Path, config: DataConfig, beside: str = "the frames") -> Path:
+    """``data.calibration`` if set, else the folder's calibration file: one of the known names, or
+    the only candidate in it (:func:`calibration_candidates`; a warning names the file taken, the
+    calibration file ``beside`` the data)."""
     if config.calibration:
         given = Path(config.calibration).expanduser()
         if not given.is_file():
@@ -83,14 +98,33 @@ def find_calibration(path: Path, config: DataConfig) -> Path:
     for name in CALIBRATION_NAMES:
         if (path / name).is_file():
             return path / name
-    candidates = [p for p in sorted(path.iterdir()) if p.is_file() and p.suffix.lower() in (".ini", ".json", ".yaml", ".yml")
-                  and p.name != "config.yaml"]
+    candidates = calibration_candidates(path)
     if len(candidates) == 1:
+        log.warning("using calibration %s (the only calibration file beside %s; --calibration FILE to choose)",
+                    candidates[0], beside)
         return candidates[0]
     if not candidates:
         raise DataError(f"{path}: no calibration file ({', '.join(CALIBRATION_NAMES)}; or --calibration FILE)")
     raise DataError(f"{path}: several calibration candidates ({', '.join(p.name for p in candidates)}); "
                     "name one with --calibration FILE")
+
+
+def load_calibration(path: Path, config: DataConfig, beside: str = "the frames"
+                     ) -> tuple[Path, RawStereoCalibration | StereoCamera]:
+    """The calibration :func:`find_calibration` finds, read. A file taken only for being the one
+    candidate that does not read as a calibration (a ``metadata.json``) is a DataError naming it
+    and suggesting --calibration."""
+    calib_path = find_calibration(path, config, beside)
+    guessed = not config.calibration and calib_path.name not in CALIBRATION_NAMES
+    try:
+        return calib_path, read_calibration(calib_path)
+    except DataError as err:
+        if not guessed:
+            raise
+        reason = str(err).removeprefix(f"{calib_path}: ")
+        raise DataError(f"{calib_path}: not a calibration file ({reason}); it was taken as the only "
+                        f"{'/'.join(CANDIDATE_SUFFIXES)} file beside {beside}: name the calibration with "
+                        "--calibration FILE") from None
 
 
 def calibration_processor(calib: RawStereoCalibration | StereoCamera, frame_size: tuple[int, int],
@@ -131,9 +165,9 @@ class FrameFolderDataset(StereoDataset):
                             f"{self._pairs[0][1]} is {first[1].shape[1]}x{first[1].shape[0]}")
         self.bit_depth = bit_depth(first)
         frame_size = (first[0].shape[1], first[0].shape[0])
-        calib_path = find_calibration(path, config)
+        calib_path, calib = load_calibration(path, config, "the frames")
         self.calibration_path = calib_path
-        processor = calibration_processor(read_calibration(calib_path), frame_size, config, str(calib_path))
+        processor = calibration_processor(calib, frame_size, config, str(calib_path))
         n = len(self._pairs)
         stamps = read_timestamps(path / TIMESTAMPS_FILE, n)
         self.timestamps_source = "timestamps.txt" if stamps is not None else "fps"

@@ -4,9 +4,10 @@ Detection (first match wins; ``config.layout`` other than ``auto`` skips it):
 
 1. ``video_frames/``                                   -> ``stereomis`` (pre-processed StereoMIS / synthetic)
 2. ``data/rgb.mp4`` (or the calibration beside ``data/``) -> ``scared``
-3. ``left/`` and ``right/`` with ``calibration.yaml``  -> ``plain``
+3. ``left/`` and ``right/`` with ``calibration.yaml`` (or no other calibration candidate,
+   :func:`slam.datasets.frames.calibration_candidates`) -> ``plain``
 4. left and right image folders by name (docs/inputs.md) -> ``frames``
-5. a ``*.mp4`` with ``StereoCalibration.ini``          -> ``stereomis_raw``
+5. a ``*.mp4`` with ``StereoCalibration.ini`` (or no other calibration candidate) -> ``stereomis_raw``
 6. one video file (or a video file given as DATA)      -> ``video``
 
 A detected layout with missing pieces (e.g. no calibration) fails in its reader with a DataError

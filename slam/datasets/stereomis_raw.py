@@ -34,9 +34,9 @@ class StereoMISRawDataset(StereoDataset):
     @staticmethod
     def detect(path: Path) -> bool:
         # an mp4 with StereoMIS's calibration, or with no other calibration to use
-        from slam.calibration import CALIBRATION_NAMES
+        from slam.datasets.frames import calibration_candidates
 
-        others = [name for name in CALIBRATION_NAMES if name != CALIB_FILE and (path / name).is_file()]
+        others = [p for p in calibration_candidates(path) if p.name != CALIB_FILE]
         return bool(find_videos(path)) and ((path / CALIB_FILE).is_file() or not others)
 
     def __init__(self, path: Path, config: DataConfig):

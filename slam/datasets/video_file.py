@@ -8,7 +8,10 @@ or a folder holding it::
 
     <seq>/
       recording.mp4 (.avi .mov .mkv ...)   exactly one video
-      <calibration>                        any file slam.calibration.read_calibration reads
+      <calibration>                        any file slam.calibration.read_calibration reads: a known
+                                           name, or the only .ini/.json/.yaml/.yml (a warning names it;
+                                           one that is not a calibration is an error suggesting
+                                           --calibration)
       timestamps.txt                       optional: one timestamp per frame (seconds)
       groundtruth.txt                      optional, TUM, metres, T_wc of the original left camera
 
@@ -24,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.calibration import RawStereoCalibration, read_calibration
+from slam.calibration import RawStereoCalibration
 from slam.datasets.config import DataConfig
 from slam.datasets.dataset import RawFrame, StereoDataset, load_groundtruth
-from slam.datasets.frames import GT_FILE, TIMESTAMPS_FILE, calibration_processor, find_calibration
+from slam.datasets.frames import GT_FILE, TIMESTAMPS_FILE, calibration_processor, load_calibration
 from slam.datasets.images import read_timestamps
 from slam.datasets.video import VIDEO_SUFFIXES, StackedStereoVideo, frame_size_of, stereo_layout_of
 from slam.errors import DataError
@@ -57,8 +60,7 @@ class VideoFileDataset(StereoDataset):
         if video_path is None:
             raise DataError(f"{path}: no stereo video file ({', '.join(VIDEO_SUFFIXES)})")
         folder = path if path.is_dir() else path.parent
-        calib_path = find_calibration(folder, config)
-        calib = read_calibration(calib_path)
+        calib_path, calib = load_calibration(folder, config, "the video")
         calib_size = calib.image_size if isinstance(calib, RawStereoCalibration) else (calib.width, calib.height)
         layout = stereo_layout_of(frame_size_of(video_path), calib_size, config.stereo_layout, str(calib_path),
                                   str(video_path))
