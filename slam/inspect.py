@@ -94,7 +94,7 @@ def inspect(data: str | Path, config, out: Optional[Path] = None) -> dict:
             "input_size": f"{raw.left.shape[1]}x{raw.left.shape[0]}",
             "output_size": f"{cam.width}x{cam.height}",
             "calibration": str(calib) if calib else "-",
-            "rectified": "no: rectified here (" + config.data.rectify_mode + ")" if rectifies else "yes (resized only)",
+            "rectified": f"no: rectified here ({config.data.rectify_mode})" if rectifies else _taken_as_rectified(proc),
             "fx_px": float(cam.fx),
             "baseline_mm": float(cam.baseline_mm),
             "fps": float(ds.fps),
@@ -132,6 +132,13 @@ def inspect(data: str | Path, config, out: Optional[Path] = None) -> dict:
     for w in report["warnings"]:
         print(f"warning: {w}")
     return report
+
+
+def _taken_as_rectified(proc) -> str:
+    """How the report words frames taken as rectified: resized or not (a ``ResizeOnly``'s sizes)."""
+    if tuple(proc.output_size) == tuple(proc.input_size):
+        return "taken as rectified, not resized"
+    return "taken as rectified, resized from {}x{}".format(*proc.input_size)
 
 
 def _rate_source(ds, fps: float) -> str:

@@ -261,3 +261,19 @@ def test_a_lone_file_that_is_no_calibration_is_an_error_suggesting_the_option(so
     with pytest.raises(DataError, match=r"notes.yaml: not a calibration file \(missing key 'fx'\); .* beside the "
                                         "frames: name the calibration with --calibration FILE"):
         open_dataset(frames, native())
+
+
+@pytest.mark.parametrize("size, expected", [((0, 0), "taken as rectified, not resized"),
+                                            ((80, 64), "taken as rectified, resized from 160x128")])
+def test_inspect_says_whether_rectified_frames_were_resized(sources, tmp_path, capsys, size, expected):
+    """It said "resized only" for frames it did not resize."""
+    from slam.config import load_config
+    from slam.inspect import inspect
+
+    rigid, _ = sources
+    config = load_config(None, [f"data.width={size[0]}", f"data.height={size[1]}"])
+    report = inspect(rigid, config, tmp_path / "insp")
+    assert report["rectified"] == expected
+    assert report["output_size"] == (f"{size[0]}x{size[1]}" if size[0] else "160x128")
+    printed = [line.split(None, 1) for line in capsys.readouterr().out.splitlines()]
+    assert ["rectified", expected] in printed
