@@ -5,26 +5,46 @@ This module imports rerun at import time; ``slam.runner.make_logger`` imports it
 recording or a viewer is asked for.
 
 Units: the logged world is in metres, like ``map.ply`` and ``trajectory.txt`` (pose translations
-and map positions divided by 1000); depth images stay in mm with ``meter=1000``.
+and map positions divided by 1000). The depth images are uint16 PNGs in 0.1 mm
+(:data:`DEPTH_UNITS_PER_MM`), logged with ``meter=10000``: rerun's ``meter`` (a ``DepthMeter``)
+is the depth units per metre, as for ``DepthImage`` (the viewer back-projects ``value / meter``
+metres; the ``meter=0.001`` in the ``EncodedDepthImage`` docstring example of 0.41 contradicts
+its own default of 1000 for integer depth in mm). :func:`decode_depth_png` reads one back in mm.
+
+Size: the images are compressed (``EncodedImage`` / ``EncodedDepthImage``); a 640x512 frame
+costs ~0.2 MB (it was 3.6 MB with raw images), and a frame re-logs only the trajectory part it
+extends (the whole path each frame grew quadratically). ``tools/benchmark_recording.py`` measures
+all this.
 
 Entity paths (``frame`` timeline, one entry per processed frame unless noted):
 
 - ``world``: view coordinates RDF (static).
-- ``world/camera``: Transform3D ``T_wc`` of the *rectified* left camera (m) and its Pinhole
-  (rectified ``K``, resolution, RDF; static, re-logged if the intrinsics change), so that every
-  image below lies in the camera's image plane and the depth is back-projected in 3D.
-- ``world/camera/image``: the rectified left image (uint8 RGB).
-- ``world/camera/depth``: DepthImage in mm (``meter=1000``).
-- ``world/camera/flow``: temporal flow, HSV colour-coded (not for the first frame).
+- ``world/camera``: Transform3D ``T_wc`` of the *rectified* left camera (m) and its
+  Pinhole (rectified ``K``, resolution, RDF; static, re-logged if the intrinsics change),
+  so that every image below lies in the camera's image plane and the depth is back-projected in
+  3D.
+- ``world/camera/image``: the rectified left image, EncodedImage, JPEG (quality
+  :data:`IMAGE_JPEG_QUALITY`).
+- ``world/camera/depth``: EncodedDepthImage, uint16 PNG in 0.1 mm (0 = no depth),
+  ``meter=10000``.
+- ``world/camera/flow``: temporal flow, HSV colour-coded, EncodedImage JPEG
+  (:data:`CODED_JPEG_QUALITY`), not for the first frame.
 - ``world/camera/weights/w2d``, ``world/camera/weights/w3d``: weight maps, min..max of the frame
-  mapped through a viridis colour map (not for the first frame).
-- ``world/camera/valid``: SegmentationImage of the valid-depth mask (0 invalid, 1 valid).
-- ``world/trajectory/estimate``: LineStrips3D of the estimated positions so far (original left
-  camera, m); ``world/trajectory/ground_truth``: the same for the ground truth (when it exists).
+  mapped through a viridis colour map, EncodedImage JPEG, not for the first frame.
+- ``world/camera/valid``: SegmentationImage of the valid-depth mask (0 invalid, 1 valid; raw
+  uint8, which the recording's LZ4 compresses to a few percent).
+- ``world/trajectory/estimate/part_NNNN``: LineStrips3D of the estimated positions (original
+  left camera, m) of frames ``100 * NNNN`` .. ``100 * NNNN + 99`` (:data:`TRAJ_PART_FRAMES`),
+  joined to the last position before them. Each frame re-logs its own part, up to itself: the
+  latest-at of every part, i.e. what the viewer shows at a frame, is the whole path so far, and
+  what a frame logs is bounded. With loop closure, ``log_final`` re-logs every part once (at the
+  last frame) with the optimised positions. ``world/trajectory/ground_truth/part_NNNN``: the same
+  for the ground truth (when it exists), ``world/trajectory/as_tracked`` and
+  ``world/trajectory/loop_edges`` (loop closure): once, at the end.
 - ``world/map``: coloured Points3D of the stable surfels every ``map_every`` frames and at the end.
 - ``metrics/fps`` (from the second frame on), ``metrics/solver_iterations``,
   ``metrics/solver_cost`` (when finite), ``metrics/translation_error_mm`` (with ground truth),
-  ``metrics/failed`` (0/1).
+  ``metrics/failed`` (0/1), and the ``health/*`` figures: every frame.
 """
 from __future__ import annotations
 
@@ -34,6 +54,7 @@ import uuid
 from pathlib import Path
 from typing import Any, Optional
 
+import cv2
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
@@ -56,6 +77,18 @@ LOOP_EDGES = "world/trajectory/loop_edges"
 MAP = "world/map"
 METRICS = ("metrics/fps", "metrics/solver_iterations", "metrics/solver_cost",
            "metrics/translation_error_mm", "metrics/failed")
+
+# Encodings (measured on 640x512 synthetic frames, tools/benchmark_recording.py): JPEG at 90 keeps
+# the image within 0.5 dB PSNR of 95 at 2/3 of its bytes (~53 kB); the colour codes are views of
+# a float map, not data, and take 85 (~13-30 kB each); the depth is lossless uint16 PNG in 0.1 mm
+# (~53 kB with the RLE strategy, the fastest and the smallest of zlib's here).
+IMAGE_JPEG_QUALITY = 90
+CODED_JPEG_QUALITY = 85
+DEPTH_UNITS_PER_MM = 10
+DEPTH_METER = 1000.0 * DEPTH_UNITS_PER_MM   # rerun's DepthMeter: depth units per metre
+DEPTH_MAX_MM = 65535 / DEPTH_UNITS_PER_MM   # deeper (and non-finite, <= 0) pixels are logged as 0
+FILE_FLUSH_TICK_S = 5.0  # the rerun batcher's tick when recording to a file only (SDK default 0.2 s)
+TRAJ_PART_FRAMES = 100  # frames per trajectory part (the data a frame re-logs is at most this)
 
 EST_COLOR = (255, 140, 0)
 GT_COLOR = (40, 200, 80)
@@ -176,6 +209,35 @@ def colormap_u8(values: Any, lo: Optional[float] = None, hi: Optional[float] = N
     return (rgb + 0.5).astype(np.uint8)
 
 
+def encode_jpeg(rgb: np.ndarray, quality: int) -> bytes:
+    """``(H, W, 3)`` uint8 RGB -> JPEG bytes."""
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    return buf.tobytes()
+
+
+def encode_depth_png(depth_mm: Any) -> bytes:
+    """A depth map in mm -> a uint16 PNG in units of ``1 / DEPTH_UNITS_PER_MM`` mm (0 = no depth:
+    non-finite, <= 0 or beyond ``DEPTH_MAX_MM``)."""
+    d = _hw(depth_mm).astype(np.float64) * DEPTH_UNITS_PER_MM
+    ok = np.isfinite(d) & (d > 0) & (d <= 65535.0)
+    q = np.where(ok, np.rint(np.where(ok, d, 0.0)), 0.0).astype(np.uint16)
+    good, buf = cv2.imencode(".png", q, [cv2.IMWRITE_PNG_COMPRESSION, 1,
+                                         cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE])
+    if not good:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def decode_depth_png(blob: bytes) -> np.ndarray:
+    """The inverse of :func:`encode_depth_png`: ``(H, W)`` float32 mm, 0 where there was no depth."""
+    q = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
+    if q is None or q.dtype != np.uint16 or q.ndim != 2:
+        raise ValueError("not a single-channel 16-bit PNG")
+    return q.astype(np.float32) / DEPTH_UNITS_PER_MM
+
+
 def _strip(positions: np.ndarray, color: tuple, label: str) -> "rr.LineStrips3D":
     """One polyline through ``(N, 3)`` positions (m), drawn 2 UI points wide."""
     return rr.LineStrips3D([np.asarray(positions, dtype=np.float32).reshape(-1, 3)], colors=[color],
@@ -239,13 +301,17 @@ class RerunLogger:
         self.R1 = None if R1 is None else np.asarray(R1, dtype=np.float64)
         self.map_every = int(getattr(config, "map_every", 0) or 0)
         self.positions: list[np.ndarray] = []  # estimated positions so far, m (the only history kept)
+        self._gt_positions = None if self.gt_poses is None else self.gt_poses[:, :3, 3] / 1000.0
+        self._parts: dict[str, int] = {}  # trajectory entity -> parts logged
         self._last_k: Optional[int] = None
         self._last_time: Optional[float] = None
         self._pinhole_key: Optional[tuple] = None
-        self._gt_logged: Optional[np.ndarray] = None  # the last ground-truth strip logged, m
         self._closed = False
         self.path: Optional[Path] = Path(config.rerun) if getattr(config, "rerun", "") else None
-        self.rec = rr.RecordingStream("endoslam", recording_id=uuid.uuid4())
+        # a file alone gathers a few seconds of rows per chunk (each chunk carries ~1 kB of schema:
+        # per frame and series at the SDK's 0.2 s); a viewer keeps the SDK's low latency
+        batcher = None if getattr(config, "spawn", False) else rr.ChunkBatcherConfig(flush_tick=FILE_FLUSH_TICK_S)
+        self.rec = rr.RecordingStream("endoslam", recording_id=uuid.uuid4(), batcher_config=batcher)
         if not self._connect(make_blueprint()):
             # nothing would ever read the data: do not buffer a whole run in memory
             log.warning("rerun: no recording path and no viewer: rerun logging is off")
@@ -314,33 +380,30 @@ class RerunLogger:
         rec.set_time(TIMELINE, sequence=int(k))
         self._log_pinhole(camera if camera is not None else self.camera)
 
-        # camera (rectified pose, m)
+        # camera (rectified pose, m) and images
         T = np.asarray(pose_rect if pose_rect is not None else record.pose, dtype=np.float64)
         rec.log(CAMERA, rr.Transform3D(translation=T[:3, 3] / 1000.0, mat3x3=T[:3, :3]))
-
-        # images
-        rec.log(IMAGE, rr.Image(image_to_u8(view.image)))
-        depth = _hw(view.depth).astype(np.float32)
-        rec.log(DEPTH, rr.DepthImage(np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0), meter=1000.0))
+        rec.log(IMAGE, rr.EncodedImage(contents=encode_jpeg(image_to_u8(view.image), IMAGE_JPEG_QUALITY),
+                                       media_type="image/jpeg"))
+        rec.log(DEPTH, rr.EncodedDepthImage(encode_depth_png(view.depth), media_type="image/png",
+                                            meter=DEPTH_METER))
         rec.log(VALID, rr.SegmentationImage(_hw(view.valid).astype(np.uint8)))
         if track is not None:
-            if getattr(track, "flow", None) is not None:
-                rec.log(FLOW, rr.Image(flow_to_rgb(track.flow)))
-            if getattr(track, "w2d", None) is not None:
-                rec.log(W2D, rr.Image(colormap_u8(track.w2d)))
-            if getattr(track, "w3d", None) is not None:
-                rec.log(W3D, rr.Image(colormap_u8(track.w3d)))
+            for path, value, code in ((FLOW, getattr(track, "flow", None), flow_to_rgb),
+                                      (W2D, getattr(track, "w2d", None), colormap_u8),
+                                      (W3D, getattr(track, "w3d", None), colormap_u8)):
+                if value is not None:
+                    rec.log(path, rr.EncodedImage(contents=encode_jpeg(code(value), CODED_JPEG_QUALITY),
+                                                  media_type="image/jpeg"))
 
-        # trajectories (original left camera, m)
+        # trajectories (original left camera, m): only the part the frame extends
         pose = np.asarray(record.pose, dtype=np.float64)
         self.positions.append(pose[:3, 3] / 1000.0)
-        rec.log(TRAJ_EST, _strip(np.stack(self.positions), EST_COLOR, "estimate"))
+        start = (int(k) // TRAJ_PART_FRAMES) * TRAJ_PART_FRAMES
+        self._log_part(TRAJ_EST, self.positions, start, int(k), EST_COLOR, "estimate")
         gt = self._gt(k)
-        if self.gt_poses is not None:
-            gt_pos = self.gt_poses[: k + 1, :3, 3] / 1000.0
-            gt_pos = gt_pos[np.all(np.isfinite(gt_pos), axis=1)]
-            rec.log(TRAJ_GT, _strip(gt_pos, GT_COLOR, "ground truth"))
-            self._gt_logged = gt_pos
+        if self._gt_positions is not None and k < len(self._gt_positions):
+            self._log_part(TRAJ_GT, self._gt_positions, start, int(k), GT_COLOR, "ground truth")
 
         # map
         if map is not None and self.map_every > 0 and k % self.map_every == 0:
@@ -368,6 +431,31 @@ class RerunLogger:
 
         self._last_k = int(k)
         self._last_time = now
+
+    def _log_part(self, path: str, positions, start: int, end: int, color: tuple, label: str) -> None:
+        """Log part ``start // TRAJ_PART_FRAMES`` of a trajectory: its finite positions of frames
+        ``start..end``, joined to the last finite position before ``start``."""
+        lo = max(start - TRAJ_PART_FRAMES, 0)
+        pts = np.asarray(positions[lo:end + 1], dtype=np.float64).reshape(-1, 3)
+        finite = np.all(np.isfinite(pts), axis=1)
+        before = np.flatnonzero(finite[: start - lo])
+        i0 = int(before[-1]) if before.size else start - lo
+        pts = pts[i0:][finite[i0:]]
+        part = start // TRAJ_PART_FRAMES
+        self.rec.log(f"{path}/part_{part:04d}", _strip(pts, color, label))
+        self._parts[path] = max(self._parts.get(path, 0), part + 1)
+
+    def _log_path(self, path: str, positions: np.ndarray, color: tuple, label: str) -> None:
+        """Re-log a whole trajectory (at the current time) as parts, clearing parts beyond it."""
+        n = len(positions)
+        parts = (n + TRAJ_PART_FRAMES - 1) // TRAJ_PART_FRAMES
+        logged = self._parts.get(path, 0)
+        for part in range(parts):
+            start = part * TRAJ_PART_FRAMES
+            self._log_part(path, positions, start, min(start + TRAJ_PART_FRAMES, n) - 1, color, label)
+        for part in range(parts, logged):
+            self.rec.log(f"{path}/part_{part:04d}", rr.Clear(recursive=False))
+        self._parts[path] = parts
 
     def _log_map(self, map) -> None:
         pts = map.points(stable_only=True)
@@ -400,17 +488,20 @@ class RerunLogger:
             if segments:
                 self.rec.log(LOOP_EDGES, rr.LineStrips3D(segments, colors=[LOOP_COLOR] * len(segments),
                                                          radii=rr.Radius.ui_points(1.5)))
-        # the per-frame strips already hold the full trajectories when every frame was logged:
-        # re-log only what differs, so that per-frame entities keep one entry per frame
+        # the per-frame parts already hold the full trajectories when every frame was logged:
+        # re-log (all parts, once) only what differs, e.g. the poses loop closure optimised
         if est_poses is not None and len(est_poses):
             est = np.asarray(est_poses, dtype=np.float64)[:, :3, 3] / 1000.0
-            if len(est) != len(self.positions) or not np.allclose(est, np.stack(self.positions)):
-                self.rec.log(TRAJ_EST, _strip(est, EST_COLOR, "estimate"))
+            if len(est) != len(self.positions) or not np.allclose(est, np.stack(self.positions), equal_nan=True):
+                self._log_path(TRAJ_EST, est, EST_COLOR, "estimate")
         if gt_poses is not None and len(gt_poses):
             gt = np.asarray(gt_poses, dtype=np.float64)[:, :3, 3] / 1000.0
             gt = gt[np.all(np.isfinite(gt), axis=1)]
-            if self._gt_logged is None or len(gt) != len(self._gt_logged) or not np.allclose(gt, self._gt_logged):
-                self.rec.log(TRAJ_GT, _strip(gt, GT_COLOR, "ground truth"))
+            logged = np.zeros((0, 3)) if self._gt_positions is None or self._last_k is None \
+                else self._gt_positions[: self._last_k + 1]
+            logged = logged[np.all(np.isfinite(logged), axis=1)]
+            if len(gt) != len(logged) or not np.allclose(gt, logged):
+                self._log_path(TRAJ_GT, gt, GT_COLOR, "ground truth")
         self.close()
 
     def close(self) -> None:

@@ -1,5 +1,7 @@
-"""Rerun logging (slam/rerun_log.py): entities and per-frame counts in a saved .rrd, the flow and
-weight colour codes, the blueprint, and that rerun stays unimported unless asked for."""
+"""Rerun logging (slam/rerun_log.py): entities and per-frame counts in a saved .rrd, the encoded
+images and depth read back, the trajectory logged in parts, the file's size per frame on a real
+run, the flow and weight colour codes, the blueprint, and that rerun
+stays unimported unless asked for."""
 from __future__ import annotations
 
 import collections
@@ -17,7 +19,8 @@ rr = pytest.importorskip("rerun")
 
 from slam.config import LoggingConfig, SlamConfig  # noqa: E402
 from slam.pipeline import FrameRecord  # noqa: E402
-from slam.rerun_log import RerunLogger, colormap_u8, flow_to_rgb  # noqa: E402
+import slam.rerun_log as rl  # noqa: E402
+from slam.rerun_log import RerunLogger, colormap_u8, decode_depth_png, flow_to_rgb  # noqa: E402
 from vo.camera import StereoCamera  # noqa: E402
 from vo.odometry import TrackResult, View  # noqa: E402
 
@@ -32,8 +35,8 @@ W2D = "/world/camera/weights/w2d"
 W3D = "/world/camera/weights/w3d"
 VALID = "/world/camera/valid"
 CAMERA = "/world/camera"
-EST = "/world/trajectory/estimate"
-GT = "/world/trajectory/ground_truth"
+EST = "/world/trajectory/estimate/part_0000"
+GT = "/world/trajectory/ground_truth/part_0000"
 MAP = "/world/map"
 
 
@@ -82,17 +85,21 @@ def _track(gen: torch.Generator, failed: bool) -> TrackResult:
                        timings_ms={"flow": 10.0, "solver": 5.0})
 
 
-def _run_logger(path: Path, gt: bool = True, map_every: int = 2) -> dict:
-    """Log N frames (frame 3 failed) and the final map into ``path``; return what was logged."""
+def _run_logger(path: Path, gt: bool = True, map_every: int = 2, n: int = N,
+                gt_poses: np.ndarray | None = None, final_est: np.ndarray | None = None) -> dict:
+    """Log ``n`` frames (frame 3 failed) and the final map into ``path``; return what was logged.
+    ``gt_poses``: instead of the default ground truth; ``final_est``: the poses ``log_final`` gets
+    (as from loop closure), default those logged per frame."""
     gen = torch.Generator().manual_seed(0)
     camera = _camera()
-    gt_poses = np.stack([_pose(k) for k in range(N)]) if gt else None
+    if gt_poses is None and gt:
+        gt_poses = np.stack([_pose(k) for k in range(n)])
     R1 = np.eye(3)
-    logger = RerunLogger(LoggingConfig(rerun=str(path), map_every=map_every), camera, name="fake_seq",
-                         gt_poses=gt_poses, R1=R1)
+    logger = RerunLogger(LoggingConfig(rerun=str(path), map_every=map_every), camera,
+                         name="fake_seq", gt_poses=gt_poses, R1=R1)
     fmap = FakeMap()
-    est = []
-    for k in range(N):
+    est, views = [], []
+    for k in range(n):
         failed = k == 3
         track = None if k == 0 else _track(gen, failed)
         pose = _pose(k)
@@ -103,11 +110,13 @@ def _run_logger(path: Path, gt: bool = True, map_every: int = 2) -> dict:
                              iterations=0 if k == 0 else 7, cost=float("nan") if k == 0 else 0.25,
                              health={} if k == 0 else {"support": 0.9, "nees": float("nan") if k == 1 else 5.0})
         frame = SimpleNamespace(index=10 + k, timestamp=0.1 * k, left=None, right=None, mask=None)
-        logger.log_frame(k, frame, _view(gen), track, record, fmap, camera, pose)
+        views.append(_view(gen))
+        logger.log_frame(k, frame, views[-1], track, record, fmap, camera, pose)
     est = np.stack(est)
-    logger.log_final(fmap, est, gt_poses)
+    logger.log_final(fmap, est if final_est is None else final_est,
+                     None if gt_poses is None else gt_poses[np.all(np.isfinite(gt_poses[:, :3, 3]), axis=1)])
     assert path.is_file() and path.stat().st_size > 0
-    return {"est": est, "gt": gt_poses, "map": fmap}
+    return {"est": est, "gt": gt_poses, "map": fmap, "views": views}
 
 
 def _frames_per_entity(path: Path) -> dict:
@@ -163,9 +172,9 @@ def test_rrd_print_lists_entities(recording):
                    "/metrics/failed"):
         assert entity in entities, f"{entity} not in the recording: {sorted(entities)}"
     # the same counts as the chunk reader below, from the CLI's row counts
-    assert rows[(IMAGE, "Image:buffer")] == N
-    assert rows[(DEPTH, "DepthImage:buffer")] == N
-    assert rows[(FLOW, "Image:buffer")] == N - 1
+    assert rows[(IMAGE, "EncodedImage:blob")] == N
+    assert rows[(DEPTH, "EncodedDepthImage:blob")] == N
+    assert rows[(FLOW, "EncodedImage:blob")] == N - 1
     assert rows[(CAMERA, "Transform3D:translation")] == N
     assert rows[(CAMERA, "Pinhole:image_from_camera")] == 1
     assert rows[(EST, "LineStrips3D:strips")] == N
@@ -180,16 +189,19 @@ def test_one_entry_per_processed_frame(recording):
     frames = _frames_per_entity(path)
     every = list(range(N))
     tracked = list(range(1, N))  # the first frame has no flow / weights
-    assert frames[(IMAGE, "Image:buffer")] == every
-    assert frames[(DEPTH, "DepthImage:buffer")] == every
-    assert frames[(DEPTH, "DepthImage:meter")] == every
+    assert frames[(IMAGE, "EncodedImage:blob")] == every
+    assert frames[(IMAGE, "EncodedImage:media_type")] == every
+    assert frames[(DEPTH, "EncodedDepthImage:blob")] == every
+    assert frames[(DEPTH, "EncodedDepthImage:meter")] == every
     assert frames[(VALID, "SegmentationImage:buffer")] == every
     assert frames[(CAMERA, "Transform3D:translation")] == every
     assert frames[(EST, "LineStrips3D:strips")] == every
     assert frames[(GT, "LineStrips3D:strips")] == every
-    assert frames[(FLOW, "Image:buffer")] == tracked
-    assert frames[(W2D, "Image:buffer")] == tracked
-    assert frames[(W3D, "Image:buffer")] == tracked
+    assert frames[(FLOW, "EncodedImage:blob")] == tracked
+    assert frames[(W2D, "EncodedImage:blob")] == tracked
+    assert frames[(W3D, "EncodedImage:blob")] == tracked
+    # nothing raw but the valid mask (a segmentation, for its annotation context)
+    assert not [key for key in frames if key[1] in ("Image:buffer", "DepthImage:buffer")]
     assert frames[("/metrics/failed", "Scalars:scalars")] == every
     assert frames[("/metrics/solver_iterations", "Scalars:scalars")] == every
     assert frames[("/metrics/translation_error_mm", "Scalars:scalars")] == every
@@ -233,8 +245,9 @@ def test_values_in_metres(recording):
     np.testing.assert_allclose(t, logged["est"][-1][:3, 3] / 1000.0, atol=1e-6)
     pts = np.asarray(_column(path, MAP, "Points3D:positions")[-1])
     np.testing.assert_allclose(pts, logged["map"].pos / 1000.0, rtol=1e-6, atol=1e-6)
-    meter = _column(path, DEPTH, "DepthImage:meter")[0]
-    assert np.ravel(meter)[0] == pytest.approx(1000.0)
+    meter = _column(path, DEPTH, "EncodedDepthImage:meter")[0]
+    assert np.ravel(meter)[0] == pytest.approx(10000.0)  # depth units (0.1 mm) per metre
+    assert _column(path, DEPTH, "EncodedDepthImage:media_type")[0] == ["image/png"]
 
 
 def test_blueprint_is_saved(recording):
@@ -258,7 +271,7 @@ def test_without_ground_truth_and_map_only_at_the_end(tmp_path):
     path = tmp_path / "nogt.rrd"
     _run_logger(path, gt=False, map_every=0)
     frames = _frames_per_entity(path)
-    assert frames[(IMAGE, "Image:buffer")] == list(range(N))
+    assert frames[(IMAGE, "EncodedImage:blob")] == list(range(N))
     assert (GT, "LineStrips3D:strips") not in frames
     assert ("/metrics/translation_error_mm", "Scalars:scalars") not in frames
     assert frames[(MAP, "Points3D:positions")] == [N - 1]
@@ -283,6 +296,205 @@ def test_spawn_failure_falls_back_to_the_file(tmp_path, monkeypatch):
     logger.log_frame(0, None, _view(gen), None, record, FakeMap(), _camera(), np.eye(4))
     assert logger.positions == []
     logger.log_final(None, np.eye(4)[None], None)
+
+
+# ------------------------------------------------------------------------------------------------
+# what the recording holds, read back
+def _rows(path: Path, entity_prefix: str) -> list:
+    """``[(entity, frame, row id, strip points or None for a Clear)]`` of the entities under
+    ``entity_prefix`` (row ids: big-endian TUIDs, which sort as they were logged)."""
+    from rerun.chunk import RrdReader
+
+    rows = []
+    for chunk in RrdReader(path).stream():
+        if chunk.is_static or not chunk.entity_path.startswith(entity_prefix):
+            continue
+        batch = chunk.to_record_batch()
+        names = batch.schema.names
+        frames = batch.column("frame").to_pylist()
+        ids = batch.column(0).to_pylist()
+        assert batch.schema.names[0] == "rerun.controls.RowId"
+        none = [None] * len(frames)
+        strips = batch.column("LineStrips3D:strips").to_pylist() if "LineStrips3D:strips" in names else none
+        clears = batch.column("Clear:is_recursive").to_pylist() if "Clear:is_recursive" in names else none
+        for f, row_id, strip, clear in zip(frames, ids, strips, clears):
+            if strip is not None:
+                rows.append((chunk.entity_path, f, row_id, np.asarray(strip[0], dtype=np.float64).reshape(-1, 3)))
+            elif clear is not None:
+                rows.append((chunk.entity_path, f, row_id, None))
+    return rows
+
+
+def _path_at(rows: list, frame: int) -> np.ndarray:
+    """The polyline the viewer shows at ``frame``: the latest-at strip of every part, in order,
+    each part's first point (the join to the part before) dropped after the first part. Rows at
+    the same frame resolve by row id, as in the viewer."""
+    latest = {}
+    for entity, f, _, pts in sorted(rows, key=lambda r: (r[1], r[2])):
+        if f <= frame:
+            latest[entity] = pts
+    parts = [latest[e] for e in sorted(latest) if latest[e] is not None and len(latest[e])]
+    if not parts:
+        return np.zeros((0, 3))
+    return np.concatenate([parts[0]] + [p[1:] for p in parts[1:]])
+
+
+def _blobs(path: Path, entity: str, name: str) -> dict:
+    """{frame: the blob's bytes} of an ``EncodedImage`` / ``EncodedDepthImage`` entity."""
+    from rerun.chunk import RrdReader
+
+    out = {}
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path != entity or chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        for f, value in zip(batch.column("frame").to_pylist(), batch.column(name)):
+            if value.is_valid:
+                out[f] = value.values[0].values.to_numpy(zero_copy_only=False).tobytes()
+    return out
+
+
+def test_depth_png_round_trip_in_tenth_mm():
+    depth = np.array([[0.0, 20.04, 20.06, 250.0], [np.nan, np.inf, -3.0, rl.DEPTH_MAX_MM + 1.0]], np.float32)
+    back = decode_depth_png(rl.encode_depth_png(depth))
+    assert back.dtype == np.float32 and back.shape == depth.shape
+    np.testing.assert_allclose(back[0], [0.0, 20.0, 20.1, 250.0], atol=1e-4)
+    assert np.all(back[1] == 0.0)  # no depth: non-finite, negative, beyond the uint16 range
+    edge = decode_depth_png(rl.encode_depth_png(np.full((2, 2), rl.DEPTH_MAX_MM, np.float32)))
+    assert np.allclose(edge, rl.DEPTH_MAX_MM)
+
+
+def test_encoded_depth_decodes_to_the_logged_mm(recording):
+    path, logged = recording
+    blobs = _blobs(path, DEPTH, "EncodedDepthImage:blob")
+    assert sorted(blobs) == list(range(N))
+    for k, blob in blobs.items():
+        depth = logged["views"][k].depth[0, 0].numpy()
+        back = decode_depth_png(blob)
+        assert back.shape == (H, W)
+        np.testing.assert_allclose(back, depth, rtol=0, atol=0.5 / rl.DEPTH_UNITS_PER_MM + 1e-4)
+        assert np.array_equal(back > 0, depth > 0)
+
+
+def test_trajectory_logged_in_parts(tmp_path, monkeypatch):
+    """Each frame logs only the part of the path it extends (bounded data per frame, not the
+    whole path), the parts at any frame make the path so far (ground truth with a gap too), and
+    log_final's different poses (loop closure) replace it once, clearing parts beyond it."""
+    monkeypatch.setattr(rl, "TRAJ_PART_FRAMES", 4)
+    n = 14
+    gt = np.stack([_pose(k) for k in range(n)])
+    gt[3:6, :3, 3] = np.nan  # unknown ground truth across the first part boundary
+    final = np.stack([_pose(k) for k in range(n - 3)])
+    final[:, :3, 3] += [5.0, 0.0, 0.0]  # fewer poses, moved: the last part must go
+    path = tmp_path / "parts.rrd"
+    logged = _run_logger(path, n=n, gt_poses=gt, final_est=final, map_every=0)
+    est_rows = _rows(path, "/world/trajectory/estimate/")
+    assert sorted({e for e, _, _, _ in est_rows}) == [f"/world/trajectory/estimate/part_{i:04d}" for i in range(4)]
+    per_frame = collections.Counter()
+    for _, f, _, pts in est_rows:
+        per_frame[f] += 0 if pts is None else len(pts)
+    # bounded: a frame logs at most a part and its join (the last frame: also log_final's 11)
+    assert all(per_frame[k] <= 4 + 1 for k in range(n - 1)), per_frame
+    assert sum(per_frame[k] for k in range(n - 1)) < 3 * n  # the whole path each frame: 91
+    for k in range(n - 1):
+        np.testing.assert_allclose(_path_at(est_rows, k), logged["est"][: k + 1, :3, 3] / 1000.0, atol=1e-6)
+        truth = gt[: k + 1, :3, 3]
+        truth = truth[np.all(np.isfinite(truth), axis=1)] / 1000.0
+        np.testing.assert_allclose(_path_at(_rows(path, "/world/trajectory/ground_truth/"), k), truth, atol=1e-6)
+    # at the last frame: the final poses, the parts beyond them cleared
+    np.testing.assert_allclose(_path_at(est_rows, n - 1), final[:, :3, 3] / 1000.0, atol=1e-6)
+    last = sorted(((row_id, pts) for e, f, row_id, pts in est_rows if e.endswith("part_0003") and f == n - 1),
+                  key=lambda r: r[0])
+    assert last[-1][1] is None  # cleared after its strip
+
+
+def test_trajectory_not_relogged_when_final_poses_agree(recording):
+    path, _ = recording
+    frames = _frames_per_entity(path)
+    assert frames[(EST, "LineStrips3D:strips")] == list(range(N))  # one row a frame, none more at the end
+    assert frames[(GT, "LineStrips3D:strips")] == list(range(N))
+
+
+# ------------------------------------------------------------------------------------------------
+# a real run on a synthetic sequence
+SYNTH_FRAMES = 12
+# measured at 160x128 (scanning, 12 frames, frame2model): 29.7 kB a frame for the per-frame
+# entities (~23 kB the images; in 12 frames the chunks' schemas weigh), against ~220 kB with the
+# raw images of before; the bound leaves 50 % for other machines and sequences
+MAX_KB_PER_FRAME_160 = 45
+
+
+class _CapturingLogger(RerunLogger):
+    """A RerunLogger that keeps what it was given to log: the depth (mm) and the image (uint8)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.logged: dict = {}
+
+    def log_frame(self, k, frame, view, track, record, *args, **kwargs):
+        self.logged[k] = (rl._hw(view.depth).astype(np.float32).copy(), rl.image_to_u8(view.image))
+        super().log_frame(k, frame, view, track, record, *args, **kwargs)
+
+
+def _synth_run(data: Path, out: Path, overrides: list) -> tuple:
+    from slam.config import load_config
+    from slam.datasets import open_dataset
+    from slam.pipeline import Pipeline
+
+    config = load_config(None, ["tracking.mode=frame2model", "threads=1", "logging.progress=false",
+                                f"logging.rerun={out / 'run.rrd'}", *overrides])
+    dataset = open_dataset(data, config.data)
+    logger = _CapturingLogger(config.logging, dataset.camera, name=data.name, gt_poses=dataset.gt_poses, R1=dataset.R1)
+    result = Pipeline(config, dataset, out, logger=logger).run(progress=False)
+    return out / "run.rrd", logger.logged, result
+
+
+@pytest.fixture(scope="module")
+def synth_recording(synth_dir, tmp_path_factory):
+    data = synth_dir("scanning", SYNTH_FRAMES, (160, 128))
+    return _synth_run(data, tmp_path_factory.mktemp("synth_rrd"), ["logging.map_every=0"])
+
+
+def test_synth_run_encoded_views_read_back(synth_recording):
+    import cv2
+
+    path, logged, _ = synth_recording
+    frames = _frames_per_entity(path)
+    every = list(range(SYNTH_FRAMES))
+    assert frames[(IMAGE, "EncodedImage:blob")] == every
+    assert frames[(DEPTH, "EncodedDepthImage:blob")] == every
+    assert frames[(VALID, "SegmentationImage:buffer")] == every
+    for entity in (FLOW, W2D, W3D):
+        assert frames[(entity, "EncodedImage:blob")] == every[1:]
+    depths = _blobs(path, DEPTH, "EncodedDepthImage:blob")
+    images = _blobs(path, IMAGE, "EncodedImage:blob")
+    for k in every:
+        depth, image = logged[k]
+        back = decode_depth_png(depths[k])
+        assert np.count_nonzero(depth) > 0.5 * depth.size
+        np.testing.assert_allclose(back, depth, rtol=0, atol=0.5 / rl.DEPTH_UNITS_PER_MM + 1e-3)
+        # the JPEG is the image, in RGB order (cv2 decodes to BGR)
+        rgb = cv2.imdecode(np.frombuffer(images[k], np.uint8), cv2.IMREAD_COLOR)[..., ::-1].astype(float)
+        err = np.abs(rgb - image).mean()
+        assert err < 3.0, err
+        assert err < 0.5 * np.abs(rgb[..., ::-1] - image).mean()
+
+
+def test_synth_run_file_per_frame(synth_recording):
+    """What the per-frame entities (camera and images, trajectories, scalars) take in the file,
+    per frame, stays below a measured bound: their bytes are the file's size minus that of the
+    file rerun writes without them."""
+    path, _, _ = synth_recording
+    per_frame = sorted({entity for entity, _ in _frames_per_entity(path)} - {MAP})
+    assert IMAGE in per_frame and "/metrics/failed" in per_frame and EST in per_frame
+    rest = path.with_name("rest.rrd")
+    cmd = [str(RERUN_CLI), "rrd", "filter", str(path), "-o", str(rest)]
+    for entity in per_frame:
+        cmd += ["--drop-entity", entity]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    kb = (path.stat().st_size - rest.stat().st_size) / SYNTH_FRAMES / 1000.0
+    assert 1.0 < kb < MAX_KB_PER_FRAME_160, f"{kb:.1f} kB a frame"
 
 
 # ------------------------------------------------------------------------------------------------
