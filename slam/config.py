@@ -161,6 +161,9 @@ class LoggingConfig:
         rerun: path of a rerun recording (``.rrd``) to save; empty = none.
         spawn: open the rerun viewer.
         map_every: log the map to rerun every N frames (0 = only the final map).
+        rerun_every: record the camera and its image views (image, depth, flow, weights, valid
+            mask) of every N-th frame only (1 = every frame; each costs ~0.2 MB at 640x512); the
+            trajectories and the metrics keep every frame, the map follows ``map_every``.
         progress: show a progress bar.
         mesh: also write a surface mesh of the map.
     """
@@ -168,6 +171,7 @@ class LoggingConfig:
     rerun: str = ""
     spawn: bool = False
     map_every: int = 10
+    rerun_every: int = 1
     progress: bool = True
     mesh: bool = False
 
@@ -348,6 +352,7 @@ def validate(config: SlamConfig) -> None:
         (config.graph.keyframe_mm > 0 and config.graph.keyframe_deg > 0, "graph.keyframe_mm and keyframe_deg must be > 0"),
         (config.graph.inactive_after >= 1, "graph.inactive_after must be >= 1"),
         (config.depth.temporal_still_mm >= 0, "depth.temporal_still_mm must be >= 0 (0 = filter every frame)"),
+        (config.logging.rerun_every >= 1, "logging.rerun_every must be >= 1 (1 = every frame)"),
     ]
     for ok, message in checks:
         if not ok:

@@ -12,27 +12,28 @@ metres; the ``meter=0.001`` in the ``EncodedDepthImage`` docstring example of 0.
 its own default of 1000 for integer depth in mm). :func:`decode_depth_png` reads one back in mm.
 
 Size: the images are compressed (``EncodedImage`` / ``EncodedDepthImage``); a 640x512 frame
-costs ~0.2 MB (it was 3.6 MB with raw images), and a frame re-logs only the trajectory part it
-extends (the whole path each frame grew quadratically). ``tools/benchmark_recording.py`` measures
-all this.
+costs ~0.2 MB (it was 3.6 MB with raw images), ``logging.rerun_every`` records the images of
+every N-th frame only, and a frame re-logs only the trajectory part it extends (the whole path
+each frame grew quadratically). ``tools/benchmark_recording.py`` measures all this.
 
-Entity paths (``frame`` timeline, one entry per processed frame unless noted):
+Entity paths (``frame`` timeline, one entry per processed frame unless noted; "recorded frames":
+every ``logging.rerun_every``-th frame, 0, N, 2N, ...):
 
 - ``world``: view coordinates RDF (static).
-- ``world/camera``: Transform3D ``T_wc`` of the *rectified* left camera (m) and its
-  Pinhole (rectified ``K``, resolution, RDF; static, re-logged if the intrinsics change),
+- ``world/camera``: Transform3D ``T_wc`` of the *rectified* left camera (m) on recorded frames,
+  and its Pinhole (rectified ``K``, resolution, RDF; static, re-logged if the intrinsics change),
   so that every image below lies in the camera's image plane and the depth is back-projected in
   3D.
 - ``world/camera/image``: the rectified left image, EncodedImage, JPEG (quality
-  :data:`IMAGE_JPEG_QUALITY`).
+  :data:`IMAGE_JPEG_QUALITY`), recorded frames.
 - ``world/camera/depth``: EncodedDepthImage, uint16 PNG in 0.1 mm (0 = no depth),
-  ``meter=10000``.
+  ``meter=10000``, recorded frames.
 - ``world/camera/flow``: temporal flow, HSV colour-coded, EncodedImage JPEG
-  (:data:`CODED_JPEG_QUALITY`), not for the first frame.
+  (:data:`CODED_JPEG_QUALITY`), recorded frames but the first.
 - ``world/camera/weights/w2d``, ``world/camera/weights/w3d``: weight maps, min..max of the frame
-  mapped through a viridis colour map, EncodedImage JPEG, not for the first frame.
+  mapped through a viridis colour map, EncodedImage JPEG, recorded frames but the first.
 - ``world/camera/valid``: SegmentationImage of the valid-depth mask (0 invalid, 1 valid; raw
-  uint8, which the recording's LZ4 compresses to a few percent).
+  uint8, which the recording's LZ4 compresses to a few percent), recorded frames.
 - ``world/trajectory/estimate/part_NNNN``: LineStrips3D of the estimated positions (original
   left camera, m) of frames ``100 * NNNN`` .. ``100 * NNNN + 99`` (:data:`TRAJ_PART_FRAMES`),
   joined to the last position before them. Each frame re-logs its own part, up to itself: the
@@ -300,6 +301,7 @@ class RerunLogger:
         self.gt_poses = None if gt_poses is None else np.asarray(gt_poses, dtype=np.float64)
         self.R1 = None if R1 is None else np.asarray(R1, dtype=np.float64)
         self.map_every = int(getattr(config, "map_every", 0) or 0)
+        self.rerun_every = max(int(getattr(config, "rerun_every", 1) or 1), 1)
         self.positions: list[np.ndarray] = []  # estimated positions so far, m (the only history kept)
         self._gt_positions = None if self.gt_poses is None else self.gt_poses[:, :3, 3] / 1000.0
         self._parts: dict[str, int] = {}  # trajectory entity -> parts logged
@@ -380,21 +382,23 @@ class RerunLogger:
         rec.set_time(TIMELINE, sequence=int(k))
         self._log_pinhole(camera if camera is not None else self.camera)
 
-        # camera (rectified pose, m) and images
-        T = np.asarray(pose_rect if pose_rect is not None else record.pose, dtype=np.float64)
-        rec.log(CAMERA, rr.Transform3D(translation=T[:3, 3] / 1000.0, mat3x3=T[:3, :3]))
-        rec.log(IMAGE, rr.EncodedImage(contents=encode_jpeg(image_to_u8(view.image), IMAGE_JPEG_QUALITY),
-                                       media_type="image/jpeg"))
-        rec.log(DEPTH, rr.EncodedDepthImage(encode_depth_png(view.depth), media_type="image/png",
-                                            meter=DEPTH_METER))
-        rec.log(VALID, rr.SegmentationImage(_hw(view.valid).astype(np.uint8)))
-        if track is not None:
-            for path, value, code in ((FLOW, getattr(track, "flow", None), flow_to_rgb),
-                                      (W2D, getattr(track, "w2d", None), colormap_u8),
-                                      (W3D, getattr(track, "w3d", None), colormap_u8)):
-                if value is not None:
-                    rec.log(path, rr.EncodedImage(contents=encode_jpeg(code(value), CODED_JPEG_QUALITY),
-                                                  media_type="image/jpeg"))
+        # the camera and its images, on every rerun_every-th frame (the pose with them: the image
+        # plane and the depth cloud stay where they were seen until the next recorded frame)
+        if int(k) % self.rerun_every == 0:
+            T = np.asarray(pose_rect if pose_rect is not None else record.pose, dtype=np.float64)
+            rec.log(CAMERA, rr.Transform3D(translation=T[:3, 3] / 1000.0, mat3x3=T[:3, :3]))
+            rec.log(IMAGE, rr.EncodedImage(contents=encode_jpeg(image_to_u8(view.image), IMAGE_JPEG_QUALITY),
+                                           media_type="image/jpeg"))
+            rec.log(DEPTH, rr.EncodedDepthImage(encode_depth_png(view.depth), media_type="image/png",
+                                                meter=DEPTH_METER))
+            rec.log(VALID, rr.SegmentationImage(_hw(view.valid).astype(np.uint8)))
+            if track is not None:
+                for path, value, code in ((FLOW, getattr(track, "flow", None), flow_to_rgb),
+                                          (W2D, getattr(track, "w2d", None), colormap_u8),
+                                          (W3D, getattr(track, "w3d", None), colormap_u8)):
+                    if value is not None:
+                        rec.log(path, rr.EncodedImage(contents=encode_jpeg(code(value), CODED_JPEG_QUALITY),
+                                                      media_type="image/jpeg"))
 
         # trajectories (original left camera, m): only the part the frame extends
         pose = np.asarray(record.pose, dtype=np.float64)

@@ -1,6 +1,6 @@
 """Rerun logging (slam/rerun_log.py): entities and per-frame counts in a saved .rrd, the encoded
-images and depth read back, the trajectory logged in parts, the file's size per frame on a real
-run, the flow and weight colour codes, the blueprint, and that rerun
+images and depth read back, the trajectory logged in parts, ``logging.rerun_every``, the file's
+size per frame on a real run, the flow and weight colour codes, the blueprint, and that rerun
 stays unimported unless asked for."""
 from __future__ import annotations
 
@@ -85,7 +85,7 @@ def _track(gen: torch.Generator, failed: bool) -> TrackResult:
                        timings_ms={"flow": 10.0, "solver": 5.0})
 
 
-def _run_logger(path: Path, gt: bool = True, map_every: int = 2, n: int = N,
+def _run_logger(path: Path, gt: bool = True, map_every: int = 2, n: int = N, rerun_every: int = 1,
                 gt_poses: np.ndarray | None = None, final_est: np.ndarray | None = None) -> dict:
     """Log ``n`` frames (frame 3 failed) and the final map into ``path``; return what was logged.
     ``gt_poses``: instead of the default ground truth; ``final_est``: the poses ``log_final`` gets
@@ -95,7 +95,7 @@ def _run_logger(path: Path, gt: bool = True, map_every: int = 2, n: int = N,
     if gt_poses is None and gt:
         gt_poses = np.stack([_pose(k) for k in range(n)])
     R1 = np.eye(3)
-    logger = RerunLogger(LoggingConfig(rerun=str(path), map_every=map_every), camera,
+    logger = RerunLogger(LoggingConfig(rerun=str(path), map_every=map_every, rerun_every=rerun_every), camera,
                          name="fake_seq", gt_poses=gt_poses, R1=R1)
     fmap = FakeMap()
     est, views = [], []
@@ -415,6 +415,31 @@ def test_trajectory_not_relogged_when_final_poses_agree(recording):
     assert frames[(GT, "LineStrips3D:strips")] == list(range(N))
 
 
+def test_rerun_every_records_every_kth_frame(tmp_path):
+    path = tmp_path / "every3.rrd"
+    _run_logger(path, n=8, rerun_every=3, map_every=0)
+    frames = _frames_per_entity(path)
+    recorded = [0, 3, 6]
+    for entity, name in ((IMAGE, "EncodedImage:blob"), (DEPTH, "EncodedDepthImage:blob"),
+                         (VALID, "SegmentationImage:buffer"), (CAMERA, "Transform3D:translation")):
+        assert frames[(entity, name)] == recorded, entity
+    for entity in (FLOW, W2D, W3D):
+        assert frames[(entity, "EncodedImage:blob")] == [3, 6]
+    every = list(range(8))
+    assert frames[(EST, "LineStrips3D:strips")] == every  # the trajectory stays complete
+    assert frames[(GT, "LineStrips3D:strips")] == every
+    assert frames[("/metrics/failed", "Scalars:scalars")] == every
+
+
+def test_rerun_every_is_validated():
+    from slam.config import load_config
+    from slam.errors import ConfigError
+
+    assert load_config(None, ["logging.rerun_every=4"]).logging.rerun_every == 4
+    with pytest.raises(ConfigError, match="logging.rerun_every must be >= 1"):
+        load_config(None, ["logging.rerun_every=0"])
+
+
 # ------------------------------------------------------------------------------------------------
 # a real run on a synthetic sequence
 SYNTH_FRAMES = 12
@@ -495,6 +520,25 @@ def test_synth_run_file_per_frame(synth_recording):
     assert res.returncode == 0, res.stderr[-2000:]
     kb = (path.stat().st_size - rest.stat().st_size) / SYNTH_FRAMES / 1000.0
     assert 1.0 < kb < MAX_KB_PER_FRAME_160, f"{kb:.1f} kB a frame"
+
+
+def test_synth_run_rerun_every(synth_dir, tmp_path):
+    from slam.cli import main
+
+    data = synth_dir("scanning", SYNTH_FRAMES, (160, 128))
+    path = tmp_path / "every.rrd"
+    assert main(["run", str(data), "--mode", "frame2model", "--out", str(tmp_path / "run"), "--rerun", str(path),
+                 "--set", "threads=1", "--set", "logging.rerun_every=5", "--quiet"]) == 0
+    frames = _frames_per_entity(path)
+    assert frames[(IMAGE, "EncodedImage:blob")] == [0, 5, 10]
+    assert frames[(DEPTH, "EncodedDepthImage:blob")] == [0, 5, 10]
+    assert frames[(FLOW, "EncodedImage:blob")] == [5, 10]
+    assert frames[(EST, "LineStrips3D:strips")] == list(range(SYNTH_FRAMES))
+    est = _path_at(_rows(path, "/world/trajectory/estimate/"), SYNTH_FRAMES - 1)
+    from slam.tum import read_tum
+
+    _, poses = read_tum(tmp_path / "run" / "trajectory.txt")
+    np.testing.assert_allclose(est, poses[:, :3, 3] / 1000.0, atol=1e-5)
 
 
 # ------------------------------------------------------------------------------------------------
