@@ -143,18 +143,11 @@ def image_to_u8(image: Any) -> np.ndarray:
     return np.ascontiguousarray((np.clip(np.nan_to_num(a.astype(np.float32)), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
 
 
-def _hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Vectorised HSV (all in [0, 1]) -> RGB float in [0, 1], shape ``h.shape + (3,)``."""
-    h6 = (h % 1.0) * 6.0
-    i = np.floor(h6).astype(np.int64) % 6
-    f = h6 - np.floor(h6)
-    p = v * (1.0 - s)
-    q = v * (1.0 - s * f)
-    t = v * (1.0 - s * (1.0 - f))
-    r = np.choose(i, [v, q, p, p, t, v])
-    g = np.choose(i, [t, v, v, q, p, p])
-    b = np.choose(i, [p, p, t, v, v, q])
-    return np.stack([r, g, b], axis=-1)
+def _planes(x: Any, channels: int) -> list:
+    """The channels of an ``(1, C, H, W)`` / ``(C, H, W)`` / ``(H, W, C)`` map as contiguous
+    float32 ``(H, W)`` planes (views of ``x`` when they can be: not to be written to)."""
+    a = _hwc(x, channels)
+    return [np.ascontiguousarray(a[..., c], dtype=np.float32) for c in range(channels)]
 
 
 def flow_to_rgb(flow: Any, max_magnitude: Optional[float] = None, percentile: float = 99.0) -> np.ndarray:
@@ -166,22 +159,38 @@ def flow_to_rgb(flow: Any, max_magnitude: Optional[float] = None, percentile: fl
             ``percentile`` of the finite magnitudes).
 
     Returns:
-        ``(H, W, 3)`` uint8 RGB.
+        ``(H, W, 3)`` uint8 RGB (hue in 256 steps; OpenCV's polar and HSV conversions, ~14x
+        faster than numpy's at 640x512).
     """
-    f = _hwc(flow, 2).astype(np.float32)
-    u, v = f[..., 0], f[..., 1]
-    mag = np.hypot(u, v)
-    finite = np.isfinite(mag)
-    mag = np.where(finite, mag, 0.0)
+    u, v = _planes(flow, 2)
+    mag, ang = cv2.cartToPolar(u, v)  # ang: atan2(v, u) in [0, 2 pi)
+    finite = np.isfinite(mag) & np.isfinite(ang)
+    if not finite.all():
+        mag[~finite] = 0.0
+        ang[~finite] = 0.0
     if max_magnitude is None:
-        vals = mag[finite & (mag > 0)]
+        vals = mag[mag > 0]
         max_magnitude = float(np.percentile(vals, percentile)) if vals.size else 0.0
     max_magnitude = max(float(max_magnitude), 1e-6)
-    hue = (np.arctan2(v, u) / (2.0 * np.pi)) % 1.0
-    hue = np.where(finite, hue, 0.0)
-    value = np.clip(mag / max_magnitude, 0.0, 1.0)
-    rgb = _hsv_to_rgb(hue, np.ones_like(value), value)
-    return (rgb * 255.0 + 0.5).astype(np.uint8)
+    hsv = np.empty(mag.shape + (3,), np.uint8)
+    hsv[..., 0] = (ang * np.float32(256.0 / (2.0 * np.pi)) + np.float32(0.5)).astype(np.int32) & 255
+    hsv[..., 1] = 255
+    value = mag * np.float32(255.0 / max_magnitude)
+    np.clip(value, 0.0, 255.0, out=value)
+    value += 0.5
+    hsv[..., 2] = value
+    return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB_FULL)
+
+
+def _viridis_lut() -> np.ndarray:
+    """``(256, 3)`` uint8: :data:`_VIRIDIS` interpolated linearly at 256 steps."""
+    x = np.linspace(0.0, 1.0, 256) * (len(_VIRIDIS) - 1)
+    i0 = np.minimum(np.floor(x).astype(np.int64), len(_VIRIDIS) - 2)
+    t = (x - i0)[:, None]
+    return (_VIRIDIS[i0] * (1.0 - t) + _VIRIDIS[i0 + 1] * t + 0.5).astype(np.uint8)
+
+
+_VIRIDIS_LUT = _viridis_lut()
 
 
 def colormap_u8(values: Any, lo: Optional[float] = None, hi: Optional[float] = None) -> np.ndarray:
@@ -192,22 +201,25 @@ def colormap_u8(values: Any, lo: Optional[float] = None, hi: Optional[float] = N
         lo, hi: the range; default the finite min and max of the map.
 
     Returns:
-        ``(H, W, 3)`` uint8 RGB.
+        ``(H, W, 3)`` uint8 RGB (the map in 256 steps through a lookup table).
     """
-    a = _hw(values).astype(np.float32)
+    a = _hw(values).astype(np.float32, copy=False)
     finite = np.isfinite(a)
-    vals = a[finite]
+    all_finite = bool(finite.all())
+    vals = a if all_finite else a[finite]
     if lo is None:
         lo = float(vals.min()) if vals.size else 0.0
     if hi is None:
         hi = float(vals.max()) if vals.size else 1.0
-    x = np.clip((a - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
-    x = np.where(finite, x, 0.0) * (len(_VIRIDIS) - 1)
-    i0 = np.minimum(np.floor(x).astype(np.int64), len(_VIRIDIS) - 2)
-    t = (x - i0)[..., None]
-    rgb = _VIRIDIS[i0] * (1.0 - t) + _VIRIDIS[i0 + 1] * t
-    rgb[~finite] = 0.0
-    return (rgb + 0.5).astype(np.uint8)
+    x = (a - np.float32(lo)) * np.float32(255.0 / max(hi - lo, 1e-12))  # a new array
+    if not all_finite:
+        x[~finite] = 0.0
+    np.clip(x, 0.0, 255.0, out=x)
+    x += 0.5
+    rgb = _VIRIDIS_LUT[x.astype(np.uint8)]
+    if not all_finite:
+        rgb[~finite] = 0
+    return rgb
 
 
 def encode_jpeg(rgb: np.ndarray, quality: int) -> bytes:

@@ -582,6 +582,41 @@ def test_colormap_min_dark_max_bright():
     assert const.shape == (4, 4, 3) and np.all(const == const[0, 0])
 
 
+def _reference_flow_to_rgb(flow: np.ndarray) -> np.ndarray:
+    """The colour code in float numpy (HSV -> RGB by hand), what flow_to_rgb approximates."""
+    u, v = flow[..., 0].astype(np.float64), flow[..., 1].astype(np.float64)
+    mag = np.hypot(u, v)
+    value = np.clip(mag / np.percentile(mag[mag > 0], 99.0), 0.0, 1.0)
+    h6 = ((np.arctan2(v, u) / (2.0 * np.pi)) % 1.0) * 6.0
+    i = np.floor(h6).astype(np.int64) % 6
+    f = h6 - np.floor(h6)
+    p, q, t = np.zeros_like(value), value * (1.0 - f), value * f
+    rgb = np.stack([np.choose(i, [value, q, p, p, t, value]), np.choose(i, [t, value, value, q, p, p]),
+                    np.choose(i, [p, p, t, value, value, q])], axis=-1)
+    return (rgb * 255.0 + 0.5).astype(np.uint8)
+
+
+def test_colour_codes_match_a_float_reference_and_leave_the_input():
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:96, 0:128].astype(np.float32)
+    flow = np.dstack([np.cos(xx / 9.0) * 4.0, np.sin(yy / 7.0) * 3.0]) + rng.normal(0, 0.3, (96, 128, 2))
+    flow = flow.astype(np.float32)
+    before = flow.copy()
+    diff = np.abs(flow_to_rgb(flow).astype(int) - _reference_flow_to_rgb(flow).astype(int))
+    assert diff.max() <= 12 and diff.mean() < 1.0, (diff.max(), diff.mean())  # hue in 256 steps
+    w = (rng.random((96, 128)) * 5.0).astype(np.float32)
+    w[0, 0] = np.nan
+    x = np.clip((w - np.nanmin(w)) / (np.nanmax(w) - np.nanmin(w)), 0.0, 1.0) * (len(rl._VIRIDIS) - 1)
+    x = np.nan_to_num(x)
+    i0 = np.minimum(np.floor(x).astype(np.int64), len(rl._VIRIDIS) - 2)
+    reference = rl._VIRIDIS[i0] * (1.0 - (x - i0)[..., None]) + rl._VIRIDIS[i0 + 1] * (x - i0)[..., None]
+    got = colormap_u8(w)
+    assert np.abs(got[1:].astype(float) - reference[1:]).max() <= 2.0
+    assert np.all(got[0, 0] == 0)  # non-finite: black
+    assert np.array_equal(flow, before)
+    assert np.isnan(w[0, 0]) and np.count_nonzero(np.isnan(w)) == 1
+
+
 # ------------------------------------------------------------------------------------------------
 def test_rerun_not_imported_unless_asked():
     code = (
