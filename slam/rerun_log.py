@@ -11,10 +11,11 @@ is the depth units per metre, as for ``DepthImage`` (the viewer back-projects ``
 metres; the ``meter=0.001`` in the ``EncodedDepthImage`` docstring example of 0.41 contradicts
 its own default of 1000 for integer depth in mm). :func:`decode_depth_png` reads one back in mm.
 
-Size: the images are compressed (``EncodedImage`` / ``EncodedDepthImage``); a 640x512 frame
-costs ~0.2 MB (it was 3.6 MB with raw images), ``logging.rerun_every`` records the images of
-every N-th frame only, and a frame re-logs only the trajectory part it extends (the whole path
-each frame grew quadratically). ``tools/benchmark_recording.py`` measures all this.
+Size: the images are compressed (``EncodedImage`` / ``EncodedDepthImage``): a 640x512 frame
+costs ~0.2 MB (3.0 MB with the raw images of before); ``logging.rerun_every`` records the images
+of every N-th frame only; a frame re-logs only the trajectory part it extends (the whole path
+each frame grew quadratically). The map, ~20 bytes a surfel each time it is logged, is then most
+of a file at the default ``map_every``. ``tools/benchmark_recording.py`` measures all this.
 
 Entity paths (``frame`` timeline, one entry per processed frame unless noted; "recorded frames":
 every ``logging.rerun_every``-th frame, 0, N, 2N, ...):

@@ -44,15 +44,20 @@ def slam(repo: Path, *args: str) -> None:
         raise RuntimeError(f"slam {' '.join(args)} failed:\n{res.stdout[-2000:]}\n{res.stderr[-3000:]}")
 
 
-def entities(path: Path) -> dict:
-    """{entity path: rows on the ``frame`` timeline} of the recording."""
+def entities(path: Path) -> tuple[dict, list]:
+    """{entity path: rows on the ``frame`` timeline} of the recording, and the points of each map
+    logged."""
     from rerun.chunk import RrdReader
 
     rows: dict = {}
+    map_points = []
     for chunk in RrdReader(path).stream():
         if not chunk.is_static and "frame" in chunk.timeline_names:
             rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
-    return rows
+            if chunk.entity_path == MAP:
+                batch = chunk.to_record_batch()
+                map_points += [len(v) for v in batch.column("Points3D:positions").to_pylist() if v is not None]
+    return rows, map_points
 
 
 def bytes_of(path: Path, drop: list[str]) -> int:
@@ -72,7 +77,7 @@ def bytes_of(path: Path, drop: list[str]) -> int:
 
 
 def measure(rrd: Path, metrics: dict) -> dict:
-    rows = entities(rrd)
+    rows, map_points = entities(rrd)
     frames = int(metrics["frames"])
     traj = [e for e in rows if e.startswith("/world/trajectory/")]
     scalars = [e for e in rows if e.startswith(("/metrics/", "/health/"))]
@@ -87,6 +92,8 @@ def measure(rrd: Path, metrics: dict) -> dict:
         "views_kb_per_frame": views / frames / 1000.0,
         **{f"{k}_kb_per_frame": v / frames / 1000.0 for k, v in per_frame.items()},
         "map_bytes": map_bytes, "map_logs": rows.get(MAP, 0), "map_share": map_bytes / total,
+        "map_last_points": map_points[-1] if map_points else 0,
+        "map_bytes_per_point": map_bytes / max(sum(map_points), 1),
         "rest_bytes": total - views - map_bytes,
         "logging_ms": float(metrics.get("timings_ms", {}).get("logging", float("nan"))),
     }
@@ -94,14 +101,15 @@ def measure(rrd: Path, metrics: dict) -> dict:
 
 def table(results: list[dict]) -> str:
     lines = ["| code | size | frames | total MB | per-frame views, kB a frame (images / trajectories / scalars) "
-             "| map MB (logs, share) | rest kB | logging ms a frame |",
-             "|---|---|---:|---:|---|---|---:|---:|"]
+             "| map MB (logs, share) | map: last points, B a point | rest kB | logging ms a frame |",
+             "|---|---|---:|---:|---|---|---|---:|---:|"]
     for r in results:
         views = (f"**{r['views_kb_per_frame']:.0f}** ({r['images_kb_per_frame']:.0f} / "
                  f"{r['trajectories_kb_per_frame']:.1f} / {r['scalars_kb_per_frame']:.1f})")
         map_ = f"{r['map_bytes'] / 1e6:.1f} ({r['map_logs']}, {100 * r['map_share']:.0f} %)"
+        points = f"{r['map_last_points'] / 1e3:.0f} k, {r['map_bytes_per_point']:.1f}"
         lines.append(f"| {r['label']} | {r['size']} | {r['frames']} | {r['total_bytes'] / 1e6:.1f} | {views} | {map_} "
-                     f"| {r['rest_bytes'] / 1e3:.0f} | {r['logging_ms']:.1f} |")
+                     f"| {points} | {r['rest_bytes'] / 1e3:.0f} | {r['logging_ms']:.1f} |")
     return "\n".join(lines)
 
 
