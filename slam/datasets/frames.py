@@ -100,8 +100,6 @@ def find_calibration(path: Path, config: DataConfig, beside: str = "the frames")
             return path / name
     candidates = calibration_candidates(path)
     if len(candidates) == 1:
-        log.warning("using calibration %s (the only calibration file beside %s; --calibration FILE to choose)",
-                    candidates[0], beside)
         return candidates[0]
     if not candidates:
         raise DataError(f"{path}: no calibration file ({', '.join(CALIBRATION_NAMES)}; or --calibration FILE)")
@@ -117,7 +115,7 @@ def load_calibration(path: Path, config: DataConfig, beside: str = "the frames"
     calib_path = find_calibration(path, config, beside)
     guessed = not config.calibration and calib_path.name not in CALIBRATION_NAMES
     try:
-        return calib_path, read_calibration(calib_path)
+        calib = read_calibration(calib_path)
     except DataError as err:
         if not guessed:
             raise
@@ -125,6 +123,10 @@ def load_calibration(path: Path, config: DataConfig, beside: str = "the frames"
         raise DataError(f"{calib_path}: not a calibration file ({reason}); it was taken as the only "
                         f"{'/'.join(CANDIDATE_SUFFIXES)} file beside {beside}: name the calibration with "
                         "--calibration FILE") from None
+    if guessed:
+        log.warning("using calibration %s (the only calibration file beside %s; --calibration FILE to choose)",
+                    calib_path, beside)
+    return calib_path, calib
 
 
 def calibration_processor(calib: RawStereoCalibration | StereoCamera, frame_size: tuple[int, int],
