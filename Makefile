@@ -14,7 +14,7 @@ install: $(STAMP)
 
 demo: $(STAMP)
 	$(VENV)/bin/slam synth runs/demo_data --scenario scanning --frames 100 --size 320x256 --seed 7
-	$(VENV)/bin/slam run runs/demo_data --mode frame2model --out runs/demo
+	$(VENV)/bin/slam run runs/demo_data --mode frame2model --out runs/demo --overwrite
 
 test: $(STAMP)
 	$(PY) -m pytest -q -n auto --dist loadfile

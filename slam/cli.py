@@ -19,6 +19,8 @@ import sys
 from pathlib import Path
 
 from slam.errors import SlamError
+from slam.interrupts import exit_code, signal_of, terminate_as_interrupt
+from slam.progress import on_terminal
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -28,14 +30,17 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see --help)\n")
 
 
-def _add_run_options(p: argparse.ArgumentParser) -> None:
+def _add_run_options(p: argparse.ArgumentParser, out_default: str) -> None:
     p.add_argument("data", help="sequence folder (docs/inputs.md: StereoMIS, SCARED, frame folders, ...) or a stereo video file")
     p.add_argument("--calibration", metavar="FILE", help="calibration file to use (.ini, .yaml, .json; docs/inputs.md)")
     p.add_argument("--stereo-layout", choices=["top-bottom", "side-by-side"],
                    help="how a stereo video holds its views (default: from the calibration, then the aspect ratio)")
     p.add_argument("--fps", type=float, help="the frames' rate when they carry no timestamps (data.fps)")
     p.add_argument("--config", help="YAML config (defaults: configs/default.yaml values built in)")
-    p.add_argument("--out", help="output folder (default runs/<sequence>_<mode>)")
+    p.add_argument("--out", help=f"output folder (default {out_default}); one holding an earlier run is refused "
+                                 "without --overwrite")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the results of an earlier run in --out (its files are removed first)")
     p.add_argument("--frames", help="frame selection: N (first N) or A:B:S")
     p.add_argument("--weights", choices=["learned", "constant"], help="learned weight maps or constant weights")
     p.add_argument("--residuals", choices=["2d3d", "2d", "3d"], help="residuals used (ablation)")
@@ -44,7 +49,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--export-map", action="store_true", help="write map.ply in frame2frame too")
     p.add_argument("--mesh", action="store_true", help="also write a surface mesh of the map")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a config value (repeatable)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_quiet(p)
+
+
+def _add_quiet(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines (results and errors stay)")
 
 
 def _add_batch_options(p: argparse.ArgumentParser) -> None:
@@ -60,7 +69,7 @@ def _add_batch_options(p: argparse.ArgumentParser) -> None:
                    help="CPUs per task (Ray's num_cpus; a run's threads when the config leaves them at 0; default 1)")
     g.add_argument("--timeout", type=float, metavar="SECONDS", help="stop a task that runs longer (default: no limit)")
     g.add_argument("--force", action="store_true", help="run every task, also those whose results are there")
-    g.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_quiet(p)
 
 
 def _batch_options(args) -> "BatchOptions":  # noqa: F821
@@ -68,7 +77,7 @@ def _batch_options(args) -> "BatchOptions":  # noqa: F821
 
     return BatchOptions(executor=args.executor, address=args.address, workers=args.workers,
                         cpus_per_task=args.cpus_per_task, timeout_s=args.timeout, force=args.force,
-                        progress=not args.quiet and sys.stderr.isatty())
+                        progress=not args.quiet and on_terminal())
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -82,12 +91,12 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="track a sequence and write trajectory, metrics, plot and map",
                          description="Track a stereo sequence. Writes trajectory.txt (TUM), metrics.json, "
                                      "trajectory.png, config.yaml, map.ply (frame2model or --export-map).")
-    _add_run_options(run)
+    _add_run_options(run, "runs/<sequence>_<mode>")
     run.add_argument("--mode", choices=["frame2frame", "frame2model"], help="tracking mode (default frame2frame)")
 
     cmp_ = sub.add_parser("compare", help="run frame2frame and frame2model on one sequence; table + plot",
                           description="Run both tracking modes on a sequence; print and write a table and one plot.")
-    _add_run_options(cmp_)
+    _add_run_options(cmp_, "runs/<sequence>_compare, one folder per mode in it")
 
     ev = sub.add_parser("eval", help="ATE-RMSE and RPE of a trajectory against ground truth",
                         description="ATE-RMSE after SE(3) alignment (first-pose alignment on static sequences), "
@@ -96,6 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("est", help="estimated TUM file")
     ev.add_argument("--plot", help="also write a trajectory plot (PNG)")
     ev.add_argument("--json", help="also write the metrics as JSON")
+    _add_quiet(ev)
 
     sy = sub.add_parser("synth", help="generate synthetic stereo-endoscopy sequences with ground truth",
                         description="Render a synthetic stereo-endoscopy sequence (StereoMIS layout, or StereoMIS raw "
@@ -164,12 +174,14 @@ def build_parser() -> argparse.ArgumentParser:
     ins.add_argument("--config", help="YAML config")
     ins.add_argument("--out", help="folder for rectified_pair.png (default runs/inspect_<name>)")
     ins.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    _add_quiet(ins)
 
     tr = sub.add_parser("train", help="train the weight networks end to end through the pose optimum (DDN)",
                         description="Train the weight networks on sequences with ground truth (configs/train.yaml).")
     tr.add_argument("--config", required=True, help="training config YAML")
     tr.add_argument("--out", help="output folder for checkpoints")
     tr.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    _add_quiet(tr)
     return parser
 
 
@@ -205,17 +217,18 @@ def _resolved_config(args) -> "SlamConfig":  # noqa: F821
 def cmd_run(args) -> int:
     from slam.runner import run_from_config
 
+    from slam.runner import exit_status
+
     config = _resolved_config(args)
-    result = run_from_config(args.data, config, args.out, args.frames)
-    return 130 if result.interrupted else 0
+    result = run_from_config(args.data, config, args.out, args.frames, overwrite=args.overwrite)
+    return exit_status(result)
 
 
 def cmd_compare(args) -> int:
     from slam.compare import compare
 
     config = _resolved_config(args)
-    compare(args.data, config, args.out, args.frames)
-    return 0
+    return compare(args.data, config, args.out, args.frames, overwrite=args.overwrite)
 
 
 def cmd_eval(args) -> int:
@@ -245,7 +258,8 @@ def cmd_synth(args) -> int:
     scenarios = list(dict.fromkeys(args.scenario))
     if len(scenarios) == 1 and len(seeds) == 1:
         scenario, seed = scenarios[0], seeds[0]
-        out = generate(args.out, scenario, frames=args.frames, size=size, seed=seed, raw=args.raw, progress=True,
+        out = generate(args.out, scenario, frames=args.frames, size=size, seed=seed, raw=args.raw,
+                       progress=not args.quiet,
                        codec=args.codec, breathing_follows_tissue=args.breathing_follows_tissue,
                        camera_speed=args.camera_speed, appearance=parse_appearance(args.appearance, seed))
         print(f"wrote {args.frames} frames ({scenario}, seed {seed}) to {out}")
@@ -287,31 +301,52 @@ def cmd_inspect(args) -> int:
 def cmd_train(args) -> int:
     from slam.training import train_from_config
 
-    train_from_config(args.config, args.out, args.set)
+    train_from_config(args.config, args.out, args.set, progress=not args.quiet)
     return 0
 
 
+def configure_logging() -> None:
+    """Warnings and errors of the project on standard error, one line each; ``slam run`` adds
+    its ``run.log`` (info and above) for the run."""
+    handler = logging.StreamHandler()
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.addHandler(handler)
+    root.setLevel(logging.WARNING)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Exit codes (README, Outputs): 0 done; 1 ``evaluate``/``synth`` with failed tasks; 2 a
+    usage, input or output error (one line); 3 a run that is not a result; 128 + the signal
+    when stopped by Ctrl-C (130) or SIGTERM (143), with what was finished written."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    configure_logging()
     handlers = {"run": cmd_run, "compare": cmd_compare, "eval": cmd_eval, "synth": cmd_synth, "train": cmd_train,
                 "inspect": cmd_inspect, "evaluate": cmd_evaluate}
     try:
-        return handlers[args.command](args)
+        with terminate_as_interrupt():
+            return handlers[args.command](args)
+    except KeyboardInterrupt as err:
+        print(f"slam {args.command}: interrupted", file=sys.stderr)
+        return exit_code(signal_of(err))
     except SlamError as err:
-        print(f"slam {args.command}: error: {err}", file=sys.stderr)
-        return 2
+        return _error(args.command, str(err))
     except (ValueError, FileNotFoundError) as err:
         # configuration mistakes surfacing from the library layers (e.g. a missing checkpoint)
-        print(f"slam {args.command}: error: {err}", file=sys.stderr)
-        return 2
+        return _error(args.command, str(err))
     except OSError as err:
         # an output that cannot be written (a file in the way, no permission, a full disk); what
         # a run had finished is on disk already (trajectory rows are written as they come)
         where = f"{err.filename}: " if err.filename else ""
-        print(f"slam {args.command}: error: {where}{err.strerror or err}", file=sys.stderr)
-        return 2
+        return _error(args.command, f"{where}{err.strerror or err}")
+
+
+def _error(command: str, message: str) -> int:
+    """The one error format of every command: ``slam COMMAND: error: MESSAGE`` on one line, exit 2."""
+    print(f"slam {command}: error: {' '.join(message.split())}", file=sys.stderr)
+    return 2
 
 
 if __name__ == "__main__":

@@ -337,6 +337,7 @@ def apply_override(config: Any, item: str) -> None:
 def validate(config: SlamConfig) -> None:
     """Range checks that types alone do not catch."""
     checks = [
+        (config.threads >= 0, "threads must be >= 0 (0 = every core but the read-ahead thread's)"),
         (config.depth.max_depth_mm > config.depth.min_depth_mm > 0, "depth: need 0 < min_depth_mm < max_depth_mm"),
         (config.solver.max_iters >= 1, "solver.max_iters must be >= 1"),
         (config.solver.robust_3d_mm >= 0, "solver.robust_3d_mm must be >= 0 (0 = off)"),

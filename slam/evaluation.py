@@ -38,13 +38,12 @@ as ``evo.core.sync.associate_trajectories`` (nearest-time method) does.
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from slam.errors import DataError, SlamError
+from slam.errors import DataError
 from slam.tum import read_tum
 
 ALIGN_METHODS = ("auto", "se3", "first", "none")
@@ -376,14 +375,11 @@ def main_eval(gt_path, est_path, align_method: str = "auto", plot_path=None, jso
               max_diff: float | None = None) -> int:
     """``slam eval GT.txt EST.txt``: print the metrics; optionally save a plot / JSON.
 
-    Returns 0 on success, 1 on bad input (the reason printed as one line on stderr).
+    Returns 0; bad input raises SlamError (``EvaluationError``, ``DataError``) naming the file,
+    which the command prints as one line (exit 2, as every command's input errors).
     """
-    try:
-        data = load_associated(gt_path, est_path, max_diff)
-        metrics = evaluate(data["gt"], data["est"], align_method)
-    except (SlamError, ValueError) as err:
-        print(f"slam eval: {err}", file=sys.stderr)
-        return 1
+    data = load_associated(gt_path, est_path, max_diff)
+    metrics = evaluate(data["gt"], data["est"], align_method)
     print(f"ground truth: {gt_path} ({data['n_gt']} poses)")
     print(f"estimate:     {est_path} ({data['n_est']} poses, {metrics['frames']} matched)")
     print(format_metrics(metrics))

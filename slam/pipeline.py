@@ -7,7 +7,6 @@ the ground truth's when it exists (first estimate = first ground-truth pose), el
 """
 from __future__ import annotations
 
-import json
 import logging
 import os
 import resource
@@ -23,14 +22,20 @@ from slam.config import SlamConfig, at_frame_rate, save_config
 from slam.datasets.base import StereoFrame
 from slam.errors import DataError, SlamError
 from slam.frame_view import frame_view
-from slam.prefetch import Prefetcher
 from slam.health import health_summary, nees, relative_error
+from slam.interrupts import SignalGate, signal_of
+from slam.prefetch import Prefetcher
+from slam.progress import Progress
+from slam.run_folder import replaced_atomically, write_json_atomically
 from slam.tracker import FrameResult, Tracker
 from slam.tracking_csv import TrackingCsvWriter
 from slam.tum import TumStreamWriter
 from vo.odometry import View
 
 log = logging.getLogger("slam")
+
+#: a finished run whose failed share is above this is not a result (``slam run`` exits 3)
+MAX_FAILED_SHARE = 0.5
 
 
 @dataclass
@@ -58,6 +63,7 @@ class RunResult:
     records: list = field(default_factory=list)
     metrics: dict = field(default_factory=dict)
     interrupted: bool = False
+    signum: int = 0          # the signal that stopped it (SIGINT or SIGTERM), 0 when it ran to the end
     map_points: int = 0
     files: dict = field(default_factory=dict)
 
@@ -123,55 +129,56 @@ class Pipeline:
     def run(self, progress: bool = True, on_frame: Optional[Callable[[int], None]] = None) -> RunResult:
         """Process every frame; write trajectory rows as they come; never lose finished work.
 
+        Ctrl-C or SIGTERM (``slam.interrupts``) stops the frames; the results of the frames done
+        are written, the small files first, and a second signal skips the slow ones.
+
         Args:
-            progress: show a progress bar.
+            progress: show progress (a bar on a terminal, a line now and then otherwise).
             on_frame: called with the number of frames done after each frame (e.g. to report
                 progress to a batch driver).
         """
-        from tqdm import tqdm
-
         self.out_dir.mkdir(parents=True, exist_ok=True)
         save_config(self.config, self.out_dir / "config.yaml")
         result = RunResult(out_dir=self.out_dir)
         n = len(self.dataset)
         writer = TumStreamWriter(self.out_dir / "trajectory.txt")
         health_csv = TrackingCsvWriter(self.out_dir / "tracking.csv")
-        bar = tqdm(total=n, unit="frame", disable=not progress, dynamic_ncols=True, leave=False)
+        bar = Progress(n, "track", enabled=progress)
         self._ahead_view = None
         reader = Prefetcher(self._read_view, n)
         threads_before = torch.get_num_threads()
         torch.set_num_threads(self._torch_threads())
         t_start = time.perf_counter()
         try:
-            for k in range(n):
-                t_frame = time.perf_counter()
-                record = self._step(k, reader)
-                if record.failed:
-                    log.warning("frame %d: %s (pose carried over)", record.index, record.reason)
-                elif record.flagged:
-                    log.warning("frame %d flagged: %s (not fused)", record.index, record.reason)
-                writer.write(record.timestamp, record.pose)
-                health_csv.write(record.index, record.timestamp, record.failed, record.flagged, record.reason,
-                                 record.reference, self._reference_frame(record), record.health)
-                result.records.append(record)
-                self._time("total", (time.perf_counter() - t_frame) * 1000.0)
-                bar.update(1)
-                elapsed = time.perf_counter() - t_start
-                bar.set_postfix(fps=f"{(k + 1) / max(elapsed, 1e-9):.1f}", fail=sum(r.failed for r in result.records),
-                                flag=sum(r.flagged for r in result.records))
-                if on_frame is not None:
-                    on_frame(k + 1)
-        except KeyboardInterrupt:
-            result.interrupted = True
-            log.warning("interrupted after %d frames; results so far are written", len(result.records))
+            with bar:
+                for k in range(n):
+                    t_frame = time.perf_counter()
+                    record = self._step(k, reader)
+                    if record.failed:
+                        log.warning("frame %d: %s (pose carried over)", record.index, record.reason)
+                    elif record.flagged:
+                        log.warning("frame %d flagged: %s (not fused)", record.index, record.reason)
+                    writer.write(record.timestamp, record.pose)
+                    health_csv.write(record.index, record.timestamp, record.failed, record.flagged, record.reason,
+                                     record.reference, self._reference_frame(record), record.health)
+                    result.records.append(record)
+                    self._time("total", (time.perf_counter() - t_frame) * 1000.0)
+                    elapsed = time.perf_counter() - t_start
+                    bar.update(1, fps=f"{(k + 1) / max(elapsed, 1e-9):.1f}",
+                               fail=sum(r.failed for r in result.records), flag=sum(r.flagged for r in result.records))
+                    if on_frame is not None:
+                        on_frame(k + 1)
+        except KeyboardInterrupt as err:
+            result.interrupted, result.signum = True, signal_of(err)
+            log.warning("interrupted after %d frames: writing the results (a second Ctrl-C skips the map, mesh, "
+                        "plot and recording)", len(result.records))
         finally:
-            reader.close()
-            bar.close()
-            writer.close()
-            health_csv.close()
-            torch.set_num_threads(threads_before)
-        wall = time.perf_counter() - t_start
-        self._finish(result, wall)
+            with SignalGate() as gate:      # from here on a signal only skips the slow outputs
+                reader.close()
+                writer.close()
+                health_csv.close()
+                torch.set_num_threads(threads_before)
+                self._finish(result, time.perf_counter() - t_start, gate)
         return result
 
     def _read_ahead(self) -> bool:
@@ -275,36 +282,65 @@ class Pipeline:
             self.logger.log_frame(k, frame, view, track, record, self.map, self.odometry.camera, pose_rect)
             self._time("logging", (time.perf_counter() - t0) * 1000.0)
 
-    def _write_optimised(self, records: list, poses: np.ndarray) -> None:
-        """With loop closure: the streamed ``trajectory.txt`` (the poses as tracked) becomes
-        ``trajectory_online.txt`` and ``trajectory.txt`` gets the optimised ``poses``."""
+    # --------------------------------------------------------------------------------------
+    def _finish(self, result: RunResult, wall_s: float, gate: SignalGate) -> None:
+        """The run's results: first the small files (the final trajectory, ``metrics.json``),
+        then the slow ones (map, mesh, plot, recording), of which a signal (``gate``) skips those
+        not written yet; ``metrics.json`` then lists them."""
+        estimate, online = self._final_trajectory(result)
+        result.metrics = self._metrics(result, wall_s, estimate, online)
+        result.files = {name: str(self.out_dir / file) for name, file in (
+            ("trajectory", "trajectory.txt"), ("tracking", "tracking.csv"), ("config", "config.yaml"),
+            ("metrics", "metrics.json"))}
+        if online is not None:
+            result.files["trajectory_online"] = str(self.out_dir / "trajectory_online.txt")
+        write_json_atomically(self.out_dir / "metrics.json", result.metrics)
+        skipped = self._write_slow_outputs(result, estimate, online, gate)
+        if gate.received and not result.interrupted:
+            result.interrupted, result.signum = True, gate.received[0]
+            result.metrics.update(interrupted=True, stopped_before_frame=None)
+        if skipped:
+            result.metrics["skipped_outputs"] = skipped
+            log.warning("interrupted: skipped %s", ", ".join(skipped))
+        write_json_atomically(self.out_dir / "metrics.json", result.metrics)
+
+    def _final_trajectory(self, result: RunResult) -> tuple[np.ndarray, Optional[np.ndarray]]:
+        """The poses the run reports ``(N, 4, 4)`` (original left camera, mm) and, with loop
+        closure, the poses as tracked (else None). With loop closure the optimised poses are the
+        result: ``trajectory.txt`` is rewritten with them, the streamed one kept as
+        ``trajectory_online.txt``."""
+        records = result.records
+        tracked = np.stack([r.pose for r in records]) if records else np.zeros((0, 4, 4))
+        optimised = self.tracker.optimised_poses(range(len(records)))
+        if optimised is None or not records:
+            return tracked, None
         from slam.tum import write_tum
 
+        estimate = optimised @ self.R1
         path = self.out_dir / "trajectory.txt"
         os.replace(path, self.out_dir / "trajectory_online.txt")
-        write_tum(path, np.array([r.timestamp for r in records]), poses)
+        with replaced_atomically(path) as tmp:
+            write_tum(tmp, np.array([r.timestamp for r in records]), estimate)
+        return estimate, tracked
 
-    # --------------------------------------------------------------------------------------
-    def _finish(self, result: RunResult, wall_s: float) -> None:
-        from slam.evaluation import evaluate
-        from slam.plots import plot_trajectory
-
+    def _metrics(self, result: RunResult, wall_s: float, estimate: np.ndarray, online: Optional[np.ndarray]) -> dict:
+        """``metrics.json``'s content (README, Outputs): counts, speed, health, provenance, and
+        against the ground truth the accuracy, under ``not_trusted`` when too many frames failed."""
         records = result.records
         done = len(records)
-        est = np.stack([r.pose for r in records]) if records else np.zeros((0, 4, 4))
-        online = None
-        optimised = self.tracker.optimised_poses(range(done))
-        if optimised is not None and done:      # loop closure: the optimised poses are the result
-            online, est = est, optimised @ self.R1
-            self._write_optimised(records, est)
+        failed = sum(r.failed for r in records)
+        status = run_status(done, failed)
         metrics: dict = {
             "data": str(self.dataset.path),
+            "status": status,
             "frames": done,
+            "selected_frames": len(self.dataset),
+            "tracked_frames": done - failed,
             "failed_frames": [r.index for r in records if r.failed],
             "failures": {str(r.index): r.reason for r in records if r.failed},
             "flagged_frames": [r.index for r in records if r.flagged],
             "flags": {str(r.index): r.reason for r in records if r.flagged},
-            "fps": done / wall_s if wall_s > 0 else 0.0,
+            "fps": (done - failed) / wall_s if wall_s > 0 else 0.0,
             "timings_ms": {k: float(np.mean(v)) for k, v in self.timings.items()},
             "mode": self.config.tracking.mode,
             "frame_rate": self.frame_rate,
@@ -320,45 +356,110 @@ class Pipeline:
             metrics["stopped_before_frame"] = int(self.dataset.indices[done]) if done < len(self.dataset) else None
         if self.tracker.loops is not None:
             metrics["loop_closure"] = self.tracker.loops.summary(done, float(np.sum(self.timings.get("loop", [0.0]))))
+        accuracy = self._accuracy(records, estimate, online)
+        if status == "ok":
+            metrics.update(accuracy)
+        elif accuracy:
+            metrics["not_trusted"] = accuracy
+        return metrics
+
+    def _groundtruth_of(self, records: list) -> tuple[Optional[np.ndarray], np.ndarray]:
+        """The ground truth of the processed frames ``(N, 4, 4)`` (None without) and the mask of
+        those with a pose (frames associated by time may have none)."""
         gt = self.dataset.gt_poses
-        gt_sel = gt[:done] if gt is not None else None
-        stamps = np.array([r.timestamp for r in records])
-        online_sel = online
-        if gt_sel is not None:      # frames without a ground-truth pose (associated by time) are left out
-            known = np.all(np.isfinite(gt_sel.reshape(len(gt_sel), 16)), axis=1)
-            if not known.all():
-                metrics["frames_without_groundtruth"] = int((~known).sum())
-                gt_sel, est, stamps = gt_sel[known], est[known], stamps[known]
-                online_sel = online[known] if online is not None else None
-        if gt_sel is not None and len(gt_sel) >= 2:
-            metrics.update(evaluate(gt_sel, est))
-            if online_sel is not None:
-                metrics["online"] = evaluate(gt_sel, online_sel)
-        files = {"trajectory": str(self.out_dir / "trajectory.txt"), "config": str(self.out_dir / "config.yaml")}
+        if gt is None:
+            return None, np.zeros(len(records), dtype=bool)
+        gt = gt[:len(records)]
+        return gt, np.all(np.isfinite(gt.reshape(len(gt), 16)), axis=1)
+
+    def _accuracy(self, records: list, estimate: np.ndarray, online: Optional[np.ndarray]) -> dict:
+        """ATE and RPE against the ground truth over the frames with a ground-truth pose
+        (``evaluated_frames``); with loop closure the tracked poses' under ``online``."""
+        from slam.evaluation import evaluate
+
+        gt, known = self._groundtruth_of(records)
+        if gt is None:
+            return {}
+        out: dict = {}
+        if not known.all():
+            out["frames_without_groundtruth"] = int((~known).sum())
+        if known.sum() < 2:
+            return out
+        figures = evaluate(gt[known], estimate[known])
+        figures["evaluated_frames"] = figures.pop("frames")
+        out.update(figures)
         if online is not None:
-            files["trajectory_online"] = str(self.out_dir / "trajectory_online.txt")
+            out["online"] = evaluate(gt[known], online[known])
+            out["online"]["evaluated_frames"] = out["online"].pop("frames")
+        return out
+
+    def _write_slow_outputs(self, result: RunResult, estimate: np.ndarray, online: Optional[np.ndarray],
+                            gate: SignalGate) -> list[str]:
+        """Write the map, the mesh, the plot and the recording's end, in that order; a signal
+        (before or during one of them) skips the rest. Returns the names of those skipped."""
+        outputs = []
         if self.map is not None:
-            ply = self.out_dir / "map.ply"
-            # the map lives in the rectified world frame of the VO, which is the world frame: only
-            # camera frames are rotated by R1, the world is shared.
-            result.map_points = self.map.save_ply(ply)
-            metrics["map_points"] = result.map_points
-            files["map"] = str(ply)
+            outputs.append(("map", self._write_map))
             if self.config.logging.mesh:
-                mesh = self.out_dir / "mesh.ply"
-                metrics["mesh_triangles"] = self.map.save_mesh(mesh)
-                files["mesh"] = str(mesh)
-        if len(est) >= 2:
-            plot_trajectory(self.out_dir / "trajectory.png", est, gt_sel, stamps,
-                            title=f"{self.dataset.path.name} ({self.config.tracking.mode})")
-            files["plot"] = str(self.out_dir / "trajectory.png")
-        (self.out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
-        files["metrics"] = str(self.out_dir / "metrics.json")
+                outputs.append(("mesh", self._write_mesh))
+        if len(estimate) >= 2:
+            outputs.append(("plot", self._write_plot))
         if self.logger is not None:
-            edges = None
-            if self.tracker.loops is not None:
-                kf = self.tracker.loops.keyframe_positions
-                edges = [(kf[i], kf[j]) for i, j in self.tracker.loops.graph.loop_edges()]
-            self.logger.log_final(self.map, est, gt_sel, online_poses=online, loop_edges=edges)
-        result.metrics = metrics
-        result.files = files
+            outputs.append(("recording", self._end_recording))
+        for i, (name, write) in enumerate(outputs):
+            try:
+                with gate.interruptible():
+                    write(result, estimate, online)
+            except KeyboardInterrupt:
+                if self.logger is not None:
+                    self.logger.close()
+                return [n for n, _ in outputs[i:]]
+        return []
+
+    def _write_map(self, result: RunResult, estimate, online) -> None:
+        # the map lives in the rectified world frame of the VO, which is the world frame: only
+        # camera frames are rotated by R1, the world is shared.
+        path = self.out_dir / "map.ply"
+        with replaced_atomically(path) as tmp:
+            result.map_points = self.map.save_ply(tmp)
+        result.metrics["map_points"] = result.map_points
+        result.files["map"] = str(path)
+
+    def _write_mesh(self, result: RunResult, estimate, online) -> None:
+        path = self.out_dir / "mesh.ply"
+        with replaced_atomically(path) as tmp:
+            result.metrics["mesh_triangles"] = self.map.save_mesh(tmp)
+        result.files["mesh"] = str(path)
+
+    def _write_plot(self, result: RunResult, estimate, online) -> None:
+        from slam.plots import plot_trajectory
+
+        gt, known = self._groundtruth_of(result.records)
+        if gt is None or known.sum() < 2:
+            gt, known = None, np.ones(len(estimate), dtype=bool)
+        keep = known
+        stamps = np.array([r.timestamp for r in result.records])
+        path = self.out_dir / "trajectory.png"
+        with replaced_atomically(path) as tmp:
+            plot_trajectory(tmp, estimate[keep], None if gt is None else gt[keep], stamps[keep],
+                            title=f"{self.dataset.path.name} ({self.config.tracking.mode})")
+        result.files["plot"] = str(path)
+
+    def _end_recording(self, result: RunResult, estimate, online) -> None:
+        gt, known = self._groundtruth_of(result.records)
+        edges = None
+        if self.tracker.loops is not None:
+            kf = self.tracker.loops.keyframe_positions
+            edges = [(kf[i], kf[j]) for i, j in self.tracker.loops.graph.loop_edges()]
+        self.logger.log_final(self.map, estimate, gt[known] if gt is not None else None, online_poses=online,
+                              loop_edges=edges)
+        if self.logger.path is not None:
+            result.files["recording"] = str(self.logger.path)
+
+
+def run_status(frames: int, failed: int) -> str:
+    """``ok``, or ``not a result: N of M frames failed`` when more than :data:`MAX_FAILED_SHARE`
+    of the processed frames failed (their poses are carried over, not tracked)."""
+    if frames > 0 and failed > MAX_FAILED_SHARE * frames:
+        return f"not a result: {failed} of {frames} frames failed"
+    return "ok"

@@ -33,6 +33,7 @@ from mapping import MapConfig
 from slam.errors import ConfigError, DataError, SlamError
 from slam.frame_view import frame_view
 from slam.rectification import original_to_rect_pose
+from slam.progress import on_terminal
 from slam.synth.appearance import appearance_tag, parse_appearance
 from slam.synth.generate import SCENARIOS
 from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
@@ -518,7 +519,7 @@ def training_data(cfg: TrainConfig, progress: bool = True) -> tuple[list[Path], 
     rng = random.Random(cfg.optim.seed)
     sequences = training_sequences(cfg, progress=progress)
     per_sequence = [build_pair_samples(path, cfg)
-                    for path in tqdm(sequences, desc="pairs", disable=not progress, leave=False)]
+                    for path in tqdm(sequences, desc="pairs", disable=not (progress and on_terminal()), leave=False)]
     samples = [s for seq in per_sequence for s in seq]
     if len(samples) < 2:
         raise SlamError("training: fewer than 2 usable pairs")
@@ -652,7 +653,8 @@ def train(cfg: TrainConfig, out_dir: str | Path, progress: bool = True) -> Path:
     best_state = {k: v.clone() for k, v in nets.state_dict().items()}
     best_epoch, stale = 0, 0
     history = [{"epoch": 0, "val": best_val}]
-    bar = tqdm(range(1, cfg.optim.epochs + 1), desc=f"train {cfg.residuals}", disable=not progress or rank != 0)
+    bar = tqdm(range(1, cfg.optim.epochs + 1), desc=f"train {cfg.residuals}",
+               disable=not (progress and on_terminal()) or rank != 0)
     bar.set_postfix(val=f"{best_val:.5f}", const=f"{baseline:.5f}")
     t0 = time.time()
     L = cfg.data.chain_length
@@ -751,6 +753,7 @@ def save_checkpoint(path: Path, cfg: TrainConfig, state: dict, sequences: list, 
     (path.parent / f"train_log_{cfg.residuals}.json").write_text(json.dumps(meta, indent=2, default=str))
 
 
-def train_from_config(config_path: str | Path, out: str | Path | None, overrides: list[str] | None = None) -> Path:
+def train_from_config(config_path: str | Path, out: str | Path | None, overrides: list[str] | None = None,
+                      progress: bool = True) -> Path:
     cfg = load_train_config(config_path, overrides)
-    return train(cfg, out or Path("runs") / "train")
+    return train(cfg, out or Path("runs") / "train", progress=progress)

@@ -226,6 +226,12 @@ def test_evaluate_killed_half_way_then_restarted(folder, tmp_path):
     assert summary["errors"] == 0 and len(summary["rows"]) == 3
 
 
+def finished_runs(out: Path) -> list[Path]:
+    """Run folders whose run has ended: its summary is the last line of its run.log (metrics.json
+    comes earlier, before the map and the plot)."""
+    return [p.parent for p in out.glob("runs/*/frame2frame/run.log") if "INFO slam: processed " in p.read_text()]
+
+
 def test_evaluate_ctrl_c_keeps_what_finished(folder, tmp_path):
     out = tmp_path / "interrupted"
     # the default SIGINT action even when the tests run as a background job (started with SIGINT ignored)
@@ -234,7 +240,7 @@ def test_evaluate_ctrl_c_keeps_what_finished(folder, tmp_path):
                             stderr=subprocess.PIPE, text=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 180
-    while time.time() < deadline and not list(out.glob("runs/*/frame2frame/metrics.json")):
+    while time.time() < deadline and not finished_runs(out):
         time.sleep(0.1)
     proc.send_signal(signal.SIGINT)
     stdout, stderr = proc.communicate(timeout=120)
@@ -257,8 +263,9 @@ def test_evaluate_error_row_for_a_broken_sequence(folder, tmp_path):
     (root / "broken" / "StereoCalibration.ini").write_text("[StereoLeft]\nres_x = banana\n")
     (root / "notes").mkdir()
     out = tmp_path / "out"
+    # a failed task: the table with the good rows, and a non-zero exit a batch script can see
     assert main(["evaluate", str(root), "--executor", "local", "--modes", "frame2frame", "--frames", "6",
-                 "--out", str(out), "--quiet"]) == 0
+                 "--out", str(out), "--quiet"]) == 1
     summary = read_summary(out)
     rows = rows_by_run(summary)
     assert summary["errors"] == 1 and len(rows) == 2

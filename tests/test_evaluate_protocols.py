@@ -93,7 +93,7 @@ def test_stereomis_bad_rows_are_error_rows(stereomis, tmp_path):
     out = tmp_path / "out"
     res = run_tool("evaluate_stereomis.py", folder, "--csv", csv, "--out", out, *THREADS,
                    "--set", "data.width=0", "--set", "data.height=0")
-    assert res.returncode == 0, res.stdout + res.stderr
+    assert res.returncode == 1, res.stdout + res.stderr   # failed tasks: the table, and a non-zero exit
     assert "Traceback" not in res.stderr
     report = json.loads((out / "summary.json").read_text())
     rows = {(r["sequence"], r["selection"]): r for r in report["rows"]}
@@ -196,7 +196,7 @@ def test_scared_missing_keyframes_are_error_rows(scared, tmp_path):
     res = run_tool("evaluate_scared.py", root, "--keyframes", "d1_k2", "d8_k1", "d9_k3", "--frames", 4,
                    "--modes", "frame2frame", "--no-map", "--out", out, *THREADS,
                    "--set", "data.width=0", "--set", "data.height=0")
-    assert res.returncode == 0, res.stdout + res.stderr
+    assert res.returncode == 1, res.stdout + res.stderr   # failed tasks: the table, and a non-zero exit
     assert "Traceback" not in res.stderr
     report = json.loads((out / "summary.json").read_text())
     status = {r["sequence"]: r for r in report["rows"]}

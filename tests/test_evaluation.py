@@ -297,6 +297,9 @@ def test_format_and_main_eval(tmp_path, capsys):
     assert rc == 0 and "ATE-RMSE" in out and "30 matched" in out
     assert json.loads((tmp_path / "m.json").read_text()) == pytest.approx(m)
 
-    rc = ev.main_eval(tmp_path / "gt.txt", tmp_path / "missing.txt")
+    from slam.cli import main
+
+    rc = main(["eval", str(tmp_path / "gt.txt"), str(tmp_path / "missing.txt")])
     err = capsys.readouterr().err
-    assert rc == 1 and "missing.txt" in err and len(err.strip().splitlines()) == 1
+    assert rc == 2 and err.startswith("slam eval: error: ") and "missing.txt" in err
+    assert len(err.strip().splitlines()) == 1

@@ -304,7 +304,7 @@ def run_ours(data: str, overrides: list[str], out: str, frames=None, mode: str =
     from slam.runner import run_from_config
 
     cfg = load_config(None, [*overrides, f"tracking.mode={mode}", "logging.progress=false"])
-    result = run_from_config(data, cfg, out, frames, print_summary=False)
+    result = run_from_config(data, cfg, out, frames, print_summary=False, overwrite=True)
     m = result.metrics
     t = m.get("timings_ms", {})
     n = m["frames"]

@@ -40,7 +40,8 @@ def main() -> None:
                     generate(data, scenario, frames=args.frames, size=(w, h), seed=seed)
                 cfg = load_config(None, [f"weights.mode={args.weights}", f"depth.source={source}",
                                          "logging.progress=false", *args.set])
-                res = run_from_config(data, cfg, out / "runs" / f"{scenario}_s{seed}_{source}", print_summary=False)
+                res = run_from_config(data, cfg, out / "runs" / f"{scenario}_s{seed}_{source}", print_summary=False,
+                                      overwrite=True)
                 ates.append(res.metrics["ate_rmse_mm"])
             rows.append({"scenario": scenario, "depth": source, "ate_mean_mm": float(np.mean(ates)),
                          "ate_std_mm": float(np.std(ates)), "runs": len(ates)})

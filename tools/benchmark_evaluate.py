@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import statistics
 import subprocess
 import sys
@@ -65,6 +66,7 @@ def run_sequential(data: Path, out: Path) -> dict:
     for name, _, _ in SEQUENCES:
         for mode in MODES:
             run = out / name / mode
+            shutil.rmtree(run, ignore_errors=True)     # a run refuses a folder holding an earlier one
             t = time.perf_counter()
             subprocess.run([*SLAM, "run", str(data / name), "--mode", mode, "--set", "threads=1", "--out", str(run),
                             "--quiet"], check=True, capture_output=True)

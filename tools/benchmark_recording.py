@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -139,6 +140,7 @@ def main() -> None:
                  "--seed", str(args.seed), "--quiet")
         for label, repo in repos:
             run = out / "runs" / f"{label}_{size}_{frames}"
+            shutil.rmtree(run, ignore_errors=True)     # a run refuses a folder holding an earlier one
             sets = [x for s in ["threads=1", *args.set] for x in ("--set", s)]
             slam(repo, "run", str(data), "--mode", "frame2model", "--out", str(run), "--rerun", str(run / "run.rrd"),
                  *sets, "--quiet")

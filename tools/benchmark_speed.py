@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -45,6 +46,7 @@ def main() -> None:
                             "--size", size, "--seed", "4242"], check=True, capture_output=True)
         for mode in args.modes:
             run_dir = out / f"{mode}_{size}"
+            shutil.rmtree(run_dir, ignore_errors=True)     # a run refuses a folder holding an earlier one
             cmd = [*slam, "run", str(data), "--mode", mode, "--out", str(run_dir), "--quiet"]
             for s in args.set:
                 cmd += ["--set", s]

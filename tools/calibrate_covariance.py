@@ -45,7 +45,7 @@ def run_one(job: dict) -> dict:
     cfg = load_config(None, [f"tracking.mode={job['mode']}", "health.covariance_scale_frame=1",
                              "health.covariance_scale_model=1", "threads=1", "logging.progress=false"])
     out = Path(job["out"])
-    res = run_from_config(data, cfg, out, print_summary=False)
+    res = run_from_config(data, cfg, out, print_summary=False, overwrite=True)
     rows = read_tracking_csv(out / "tracking.csv")
     return {"name": out.name, "mode": job["mode"], "nees": rows["nees"].tolist(),
             "reference": rows["reference"].tolist(), "ate_rmse_mm": res.metrics.get("ate_rmse_mm")}

@@ -55,7 +55,7 @@ def run(data: Path, out: Path, mode: str, device: str, torch_kernels: bool, sets
     overrides = [f"tracking.mode={mode}", f"device={device}", "logging.progress=false", *sets]
     if torch_kernels:
         overrides += ["solver.kernel=torch", "map.kernels=torch"]
-    result = run_from_config(data, load_config(None, overrides), out=out, print_summary=False)
+    result = run_from_config(data, load_config(None, overrides), out=out, print_summary=False, overwrite=True)
     return relative_poses(result.records), float(result.metrics["fps"])
 
 

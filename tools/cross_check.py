@@ -99,7 +99,7 @@ def run_closed_loop(job: dict) -> dict:
     for tag, overrides in (("off", off), ("on", [f"health.cross_check={job['limit']}", *job["set"]])):
         cfg = load_config(None, ["tracking.mode=frame2model", "threads=1", "logging.progress=false", *overrides])
         res = run_from_config(data, cfg, Path(job["out"]) / "runs" / f"{data.name}_{tag}{job['tag'] if tag == 'on' else ''}",
-                              print_summary=False)
+                              print_summary=False, overwrite=True)
         m = res.metrics
         out[tag] = {"ate_rmse_mm": m.get("ate_rmse_mm"), "flagged": len(m["flagged_frames"]),
                     "failed": len(m["failed_frames"]), "rebuilds": m["model_rebuilds"], "frames": m["frames"],

@@ -226,6 +226,8 @@ def row_of(task: RunTask, outcome: Optional[dict], resumed: bool) -> dict:
         row.update(frames=metrics.get("frames"), failed=len(metrics.get("failed_frames", [])),
                    flagged=len(metrics.get("flagged_frames", [])), fps=metrics.get("fps"))
         row.update({k: metrics[k] for k in METRIC_KEYS if k in metrics})
+        if row["status"] == "ok" and metrics.get("status", "ok") != "ok":    # too many frames failed
+            row.update(status="not a result", message=metrics["status"])
         if task.require_groundtruth and row["status"] == "ok" and "ate_rmse_mm" not in metrics:
             row.update(status="error", message="too few frames with ground truth to evaluate")
     accuracy = read_json(Path(task.out_dir) / MAP_ACCURACY)
@@ -250,7 +252,8 @@ def describe(task: RunTask, outcome: dict) -> str:
 
 
 def evaluate(req: EvaluateRequest) -> int:
-    """Run the evaluation; write its tables; exit code 0, or 130 when interrupted."""
+    """Run the evaluation; write its tables. Exit code: 130 when interrupted, 1 when a task
+    failed, timed out or its run is not a result (the tables hold the good rows), else 0."""
     if req.protocol not in protocols.PROTOCOLS:
         raise ConfigError(f"--protocol {req.protocol}: expected one of {', '.join(protocols.PROTOCOLS)}")
     req.batch.validate()
@@ -287,7 +290,7 @@ def write_report(req: EvaluateRequest, out: Path, rows: list[dict], notes: list[
                  interrupted: bool, not_run: list[str], resumed: int) -> int:
     if not rows:
         print("no runs finished; nothing to report", file=sys.stderr)
-        return 130 if interrupted else 0
+        return status_of(rows, interrupted)
     sections, figures = REPORTS[req.protocol](rows)
     report = "\n\n".join([*sections, *([("\n".join(f"- {n}" for n in notes))] if notes else [])])
     print()
@@ -300,8 +303,20 @@ def write_report(req: EvaluateRequest, out: Path, rows: list[dict], notes: list[
                "frames": req.frames, "batch": {**info, "cpus_per_task": req.batch.cpus_per_task,
                                                "timeout_s": req.batch.timeout_s},
                "tasks": len(rows) + len(not_run), "resumed": resumed,
-               "errors": sum(r["status"] == "error" for r in rows),
+               "errors": sum(r["status"] != "ok" for r in rows),
                "not_run": not_run, "interrupted": interrupted, "notes": notes, "tables": figures, "rows": rows}
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     print(f"\nwrote {out / 'evaluation.md'}, evaluation.csv, evaluation.png and summary.json")
-    return 130 if interrupted else 0
+    return status_of(rows, interrupted)
+
+
+def status_of(rows: list[dict], interrupted: bool) -> int:
+    """``slam evaluate``'s exit code (see :func:`evaluate`)."""
+    if interrupted:
+        return 130
+    bad = [r for r in rows if r["status"] != "ok"]
+    if bad:
+        print(f"{len(bad)} of {len(rows)} task(s) did not give a result: "
+              + "; ".join(f"{r['sequence']} {r['mode']}: {r['status']}" for r in bad[:5])
+              + (" ..." if len(bad) > 5 else ""), file=sys.stderr)
+    return 1 if bad else 0

@@ -1,7 +1,7 @@
 """An evaluation's rows gathered into the paper's tables: Markdown, CSV, a plot.
 
 A row is one task's result (``slam.batch.evaluate.row_of``): ``sequence``, ``scenario``,
-``group``, ``mode``, ``sweep``, ``status`` (``ok`` | ``error`` | ``timeout`` | ``interrupted``),
+``group``, ``mode``, ``sweep``, ``status`` (``ok`` | ``error`` | ``timeout`` | ``interrupted`` | ``not a result``),
 ``message``, the run's ``frames``, ``failed``, ``flagged``, ``fps``, ``seconds`` and, with
 ground truth, ``ate_rmse_mm``, ``rpe_trans_mm`` (± ``rpe_trans_std_mm``), ``rpe_rot_deg``
 (± ``rpe_rot_std_deg``); SCARED rows also ``map_*``. A *method* is a mode with its swept values:

@@ -1,7 +1,7 @@
 """A batch's tasks: what one worker does, where it writes, and whether it is done already.
 
 * :class:`RunTask`: one sequence (or clip) tracked in one mode with one resolved configuration,
-  into its own run folder (the usual ``slam run`` files plus ``run.log``, what the task printed).
+  into its own run folder (the usual ``slam run`` files, ``run.log`` among them).
   It is done when the folder's ``metrics.json`` has no ``interrupted`` key and records the
   provenance (``slam.provenance``: configuration digest, package version, checkpoint digests,
   frame selection) this task would record.

@@ -1,7 +1,8 @@
-"""What a worker process does with one task (``slam.batch.tasks``): run it with its output
-captured in its log, its threads as the task says, and return its outcome.
+"""What a worker process does with one task (``slam.batch.tasks``): run it with its threads as
+the task says (a run writes its own ``run.log``; what else the task prints is added to it) and
+return its outcome.
 
-The outcome is a small dict (``status`` ``ok`` | ``interrupted`` | ``error``, a one-line
+The outcome is a small dict (``status`` ``ok`` | ``interrupted`` | ``error`` | ``not a result``, a one-line
 ``message`` for errors, ``seconds``, ``frames``); the results themselves are the files the task
 writes into its folder, which the driver reads.
 """
@@ -18,6 +19,9 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from slam.batch.tasks import MAP_ACCURACY, METRICS, RUN_LOG, RunTask, SynthTask
+
+#: what a task prints outside the project's logging, appended to ``run.log`` when it ends
+STRAY_LOG = ".task_output.log"
 from slam.errors import DataError, one_line
 
 Report = Callable[[str, Any], None]
@@ -94,11 +98,12 @@ def check_sequence(task: RunTask) -> None:
 
 
 def run_task(task: RunTask, report: Report) -> dict:
-    """Track ``task``'s sequence into its run folder (see ``slam.batch.tasks.RunTask``)."""
+    """Track ``task``'s sequence into its run folder (see ``slam.batch.tasks.RunTask``); the run
+    writes its own ``run.log``, to which an error's traceback is added."""
     import cv2
 
     from slam.batch.map_accuracy import keyframe_map_accuracy
-    from slam.runner import run_from_config
+    from slam.runner import exit_status, run_from_config
 
     out = Path(task.out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -106,25 +111,53 @@ def run_task(task: RunTask, report: Report) -> dict:
         (out / name).unlink(missing_ok=True)
     threads = max(1, task.config.threads)
     cv2.setNumThreads(threads)
+    quiet_console()
     t0 = time.perf_counter()
-    with captured_output(out / RUN_LOG):
-        print(f"{task.label}: {task.data} -> {out} (threads {threads}, pid {os.getpid()})", flush=True)
-        try:
+    stray = out / STRAY_LOG
+    try:
+        with captured_output(stray):    # what native code prints; the run's own log is run.log
             check_sequence(task)
             result = run_from_config(task.data, task.config, out, task.frames, print_summary=False,
-                                     on_frame=_throttled(report))
-        except KeyboardInterrupt:
-            return {"status": "interrupted", "message": "interrupted", "seconds": time.perf_counter() - t0}
-        except Exception as err:  # noqa: BLE001 - one bad sequence is one error row
-            traceback.print_exc()
-            return {"status": "error", "message": one_line(err), "seconds": time.perf_counter() - t0}
-        report("frames", len(result.records))
-        if task.map_accuracy is not None and not result.interrupted and result.records:
-            acc = keyframe_map_accuracy(Path(task.data), out, result.records[0].pose, task.map_accuracy.gt_depth,
-                                        task.map_accuracy.png_scale_mm)
-            (out / MAP_ACCURACY).write_text(json.dumps(acc, indent=2))
-    return {"status": "interrupted" if result.interrupted else "ok", "frames": len(result.records),
-            "seconds": time.perf_counter() - t0}
+                                     on_frame=_throttled(report), overwrite=True)
+    except KeyboardInterrupt:
+        return {"status": "interrupted", "message": "interrupted", "seconds": time.perf_counter() - t0}
+    except Exception as err:  # noqa: BLE001 - one bad sequence is one error row
+        with open(stray, "a") as fh:
+            fh.write(f"{task.label}: {task.data} -> {out} (threads {threads}, pid {os.getpid()})\n")
+            fh.write(traceback.format_exc())
+        return {"status": "error", "message": one_line(err), "seconds": time.perf_counter() - t0}
+    finally:
+        append_stray_output(stray, out / RUN_LOG)
+    report("frames", len(result.records))
+    if task.map_accuracy is not None and not result.interrupted and result.records:
+        acc = keyframe_map_accuracy(Path(task.data), out, result.records[0].pose, task.map_accuracy.gt_depth,
+                                    task.map_accuracy.png_scale_mm)
+        (out / MAP_ACCURACY).write_text(json.dumps(acc, indent=2))
+    status = {0: "ok", 3: "not a result"}.get(exit_status(result), "interrupted")
+    outcome = {"status": status, "frames": len(result.records), "seconds": time.perf_counter() - t0}
+    if status == "not a result":
+        outcome["message"] = result.metrics["status"]
+    return outcome
+
+
+def append_stray_output(stray: Path, log: Path) -> None:
+    """Add what the task printed outside the project's logging (native libraries, a traceback)
+    to the end of the run's ``run.log``, and remove ``stray``."""
+    if not stray.is_file():
+        return
+    text = stray.read_text(errors="replace")
+    if text.strip():
+        with open(log, "a") as fh:
+            fh.write("--- printed by the task outside the run's log ---\n" + text)
+    stray.unlink()
+
+
+def quiet_console() -> None:
+    """A worker's log records go to its run's ``run.log`` only: without a handler of its own the
+    root logger would print warnings on the driver's terminal (Python's last resort)."""
+    root = logging.getLogger()
+    if not root.handlers:
+        root.addHandler(logging.NullHandler())
 
 
 def synth_task(task: SynthTask, report: Report) -> dict:

@@ -14,6 +14,7 @@ from slam.synth.instrument import InstrumentMotion
 from slam.synth.render import Renderer
 from slam.synth.scene import make_scene
 from slam.synth.writer import DEPTH_SCALE_MM, SequenceWriter, prepare_out_dir, write_calibration, write_metadata
+from slam.progress import Progress
 from slam.tum import write_tum
 
 VERSION = "1.0.0"
@@ -138,11 +139,7 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
     masks = instrument is not None
     writer = SequenceWriter(out, raw, width, height, fps, masks=masks, codec=codec)
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=frames, desc=f"synth {scenario}", unit="frame")
-    try:
+    with writer, Progress(frames, f"synth {scenario}", enabled=progress) as bar:
         for i in range(frames):
             t = i / fps
             if instrument is not None:
@@ -158,12 +155,7 @@ def generate(out_dir, scenario: str, frames: int = 150, size: tuple[int, int] = 
                          depth=None if raw else left.depth,
                          nonrigid=None if raw else left.nonrigid,
                          tissue=left.tissue if masks else None)
-            if bar is not None:
-                bar.update(1)
-    finally:
-        writer.close()
-        if bar is not None:
-            bar.close()
+            bar.update(1)
 
     write_tum(out / "groundtruth.txt", np.arange(frames) / fps, poses)
     write_calibration(out / "StereoCalibration.ini", rig)

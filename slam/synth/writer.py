@@ -117,6 +117,12 @@ class SequenceWriter:
         if self.masks and tissue is not None:
             self._submit(_imwrite, self.out_dir / "masks" / f"{name}l.png", np.where(tissue, 255, 0).astype(np.uint8))
 
+    def __enter__(self) -> "SequenceWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def close(self) -> None:
         try:
             for f in self._pending:
