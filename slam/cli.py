@@ -308,10 +308,13 @@ def cmd_train(args) -> int:
 def configure_logging() -> None:
     """Warnings and errors of the project on standard error, one line each; ``slam run`` adds
     its ``run.log`` (info and above) for the run."""
+    root = logging.getLogger()
+    for old in [h for h in root.handlers if getattr(h, "slam_console", False)]:    # main() called again
+        root.removeHandler(old)
     handler = logging.StreamHandler()
+    handler.slam_console = True
     handler.setLevel(logging.WARNING)
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
-    root = logging.getLogger()
     root.addHandler(handler)
     root.setLevel(logging.WARNING)
 

@@ -7,7 +7,7 @@ with ``128 + signal`` (130 for SIGINT, 143 for SIGTERM). Python turns SIGINT int
 a ``KeyboardInterrupt`` too, so one ``except KeyboardInterrupt`` handles both.
 
 :class:`SignalGate` protects what must be written once the frames stop (``metrics.json``):
-there a signal is counted, and it only cuts short the slow outputs a person may skip (map,
+there a signal is held, and it only cuts short the slow outputs a person may skip (map,
 mesh, plot). Signal handlers belong to the main thread; elsewhere both helpers do nothing.
 """
 from __future__ import annotations
@@ -59,10 +59,15 @@ def terminate_as_interrupt() -> Iterator[None]:
 
 
 class SignalGate:
-    """While a run writes its results: SIGINT and SIGTERM are counted, not raised, except inside
-    :meth:`interruptible` blocks (the slow outputs a person may skip), where they raise as
-    usual; a signal that came before such a block raises at its start. Use as a context
-    manager around the writing; the handlers in place before are restored afterwards.
+    """A run's signals, from its first frame to its last output.
+
+    SIGINT and SIGTERM raise (``KeyboardInterrupt``, :class:`Terminated`) only inside
+    :meth:`interruptible` blocks: the frames, then each slow output a person may skip (map,
+    mesh, plot). A signal raises once; one that comes while no block is open (the small files
+    being written, or right after another signal) is held, and the next interruptible block
+    raises it at its start. So a first Ctrl-C stops the frames and a second one, whenever it
+    comes, skips the slow outputs not written yet. Use as a context manager; the handlers in
+    place before are restored afterwards.
 
     Attributes:
         received: the signals that came, in order.
@@ -70,6 +75,7 @@ class SignalGate:
 
     def __init__(self):
         self.received: list[int] = []
+        self._held: list[int] = []
         self._open = False
         self._previous: dict = {}
 
@@ -85,8 +91,11 @@ class SignalGate:
 
     def _handle(self, signum, frame) -> None:
         self.received.append(int(signum))
-        if self._open:
-            self._raise(signum)
+        if not self._open:
+            self._held.append(int(signum))
+            return
+        self._open = False      # a signal right behind this one is held, not raised mid-cleanup
+        self._raise(signum)
 
     @staticmethod
     def _raise(signum: int) -> None:
@@ -94,9 +103,10 @@ class SignalGate:
 
     @contextlib.contextmanager
     def interruptible(self) -> Iterator[None]:
-        """A block a signal may cut short (KeyboardInterrupt, or :class:`Terminated`)."""
-        if self.received:
-            self._raise(self.received[0])
+        """A block a signal may cut short (KeyboardInterrupt, or :class:`Terminated`); a held
+        signal raises at its start."""
+        if self._held:
+            self._raise(self._held.pop(0))
         self._open = True
         try:
             yield

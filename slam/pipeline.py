@@ -149,37 +149,41 @@ class Pipeline:
         threads_before = torch.get_num_threads()
         torch.set_num_threads(self._torch_threads())
         t_start = time.perf_counter()
-        try:
-            with bar:
-                for k in range(n):
-                    t_frame = time.perf_counter()
-                    record = self._step(k, reader)
-                    if record.failed:
-                        log.warning("frame %d: %s (pose carried over)", record.index, record.reason)
-                    elif record.flagged:
-                        log.warning("frame %d flagged: %s (not fused)", record.index, record.reason)
-                    writer.write(record.timestamp, record.pose)
-                    health_csv.write(record.index, record.timestamp, record.failed, record.flagged, record.reason,
-                                     record.reference, self._reference_frame(record), record.health)
-                    result.records.append(record)
-                    self._time("total", (time.perf_counter() - t_frame) * 1000.0)
-                    elapsed = time.perf_counter() - t_start
-                    bar.update(1, fps=f"{(k + 1) / max(elapsed, 1e-9):.1f}",
-                               fail=sum(r.failed for r in result.records), flag=sum(r.flagged for r in result.records))
-                    if on_frame is not None:
-                        on_frame(k + 1)
-        except KeyboardInterrupt as err:
-            result.interrupted, result.signum = True, signal_of(err)
-            log.warning("interrupted after %d frames: writing the results (a second Ctrl-C skips the map, mesh, "
-                        "plot and recording)", len(result.records))
-        finally:
-            with SignalGate() as gate:      # from here on a signal only skips the slow outputs
+        with SignalGate() as gate:      # a signal stops the frames; a second one skips the slow outputs
+            try:
+                with gate.interruptible(), bar:
+                    for k in range(n):
+                        self._track_frame(k, reader, writer, health_csv, result)
+                        bar.update(1, fps=f"{(k + 1) / max(time.perf_counter() - t_start, 1e-9):.1f}",
+                                   fail=sum(r.failed for r in result.records), flag=sum(r.flagged for r in result.records))
+                        if on_frame is not None:
+                            on_frame(k + 1)
+            except KeyboardInterrupt as err:
+                result.interrupted, result.signum = True, signal_of(err)
+                log.warning("interrupted after %d frames: writing the results (a second Ctrl-C skips the map, "
+                            "mesh, plot and recording)", len(result.records))
+            finally:
                 reader.close()
                 writer.close()
                 health_csv.close()
                 torch.set_num_threads(threads_before)
-                self._finish(result, time.perf_counter() - t_start, gate)
+            self._finish(result, time.perf_counter() - t_start, gate)
         return result
+
+    def _track_frame(self, k: int, reader: Prefetcher, writer: TumStreamWriter, health_csv: TrackingCsvWriter,
+                     result: RunResult) -> None:
+        """Frame ``k``: track it, write its rows (``trajectory.txt``, ``tracking.csv``), keep its record."""
+        t_frame = time.perf_counter()
+        record = self._step(k, reader)
+        if record.failed:
+            log.warning("frame %d: %s (pose carried over)", record.index, record.reason)
+        elif record.flagged:
+            log.warning("frame %d flagged: %s (not fused)", record.index, record.reason)
+        writer.write(record.timestamp, record.pose)
+        health_csv.write(record.index, record.timestamp, record.failed, record.flagged, record.reason,
+                         record.reference, self._reference_frame(record), record.health)
+        result.records.append(record)
+        self._time("total", (time.perf_counter() - t_frame) * 1000.0)
 
     def _read_ahead(self) -> bool:
         """Whether views are made in the read-ahead thread (``tracking.read_ahead``, and a stereo
@@ -296,7 +300,7 @@ class Pipeline:
             result.files["trajectory_online"] = str(self.out_dir / "trajectory_online.txt")
         write_json_atomically(self.out_dir / "metrics.json", result.metrics)
         skipped = self._write_slow_outputs(result, estimate, online, gate)
-        if gate.received and not result.interrupted:
+        if gate.received and not result.interrupted:     # the first signal came after the last frame
             result.interrupted, result.signum = True, gate.received[0]
             result.metrics.update(interrupted=True, stopped_before_frame=None)
         if skipped:
