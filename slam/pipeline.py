@@ -415,7 +415,7 @@ class Pipeline:
                 with gate.interruptible():
                     write(result, estimate, online)
             except KeyboardInterrupt:
-                if self.logger is not None:
+                if self.logger is not None and hasattr(self.logger, "close"):
                     self.logger.close()
                 return [n for n, _ in outputs[i:]]
         return []
@@ -457,8 +457,9 @@ class Pipeline:
             edges = [(kf[i], kf[j]) for i, j in self.tracker.loops.graph.loop_edges()]
         self.logger.log_final(self.map, estimate, gt[known] if gt is not None else None, online_poses=online,
                               loop_edges=edges)
-        if self.logger.path is not None:
-            result.files["recording"] = str(self.logger.path)
+        path = getattr(self.logger, "path", None)      # (a logger that records to no file has none)
+        if path is not None:
+            result.files["recording"] = str(path)
 
 
 def run_status(frames: int, failed: int) -> str:
