@@ -1,0 +1,141 @@
+"""Same input, same config, same outputs: this checkout against another commit, byte for byte.
+
+A maintainer's check for a change that must not change behaviour (a redesign): each case runs
+``slam run`` with ``threads=1`` in a git worktree of the base commit and in this checkout, one
+after the other, and compares ``trajectory.txt``, ``tracking.csv``, ``metrics.json`` (without
+timings, speed, memory and provenance) and ``map.ply`` byte for byte. Prints a Markdown table;
+exit code 1 when a file differs.
+
+    .venv/bin/python tools/check_behaviour.py --base COMMIT [--cases default paper ...] [--out DIR]
+
+The sequences are rendered once into ``OUT/data`` by this checkout's ``slam synth``. A case
+whose options the new code names differently carries them as ``new`` (a removed key, a moved
+analysis switch).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+#: metrics.json keys that measure the machine, not the result
+VOLATILE = ("fps", "timings_ms", "peak_rss_mb", "provenance", "data")
+FILES = ("trajectory.txt", "tracking.csv", "metrics.json", "map.ply")
+
+
+@dataclass
+class Sequence:
+    name: str
+    synth: list          # slam synth's options
+    unreadable: tuple = ()   # frames whose left PNG is made unreadable (frames that could not be read)
+
+
+@dataclass
+class Case:
+    name: str
+    sequence: str
+    args: list                     # slam run's options for both versions
+    new: list = field(default_factory=list)   # replaces ``args`` for this checkout when not empty
+
+
+SEQUENCES = {s.name: s for s in [
+    Sequence("scanning", ["--scenario", "scanning", "--frames", "40", "--size", "320x256", "--seed", "4242"]),
+    Sequence("still", ["--scenario", "breathing", "--frames", "30", "--size", "320x256", "--seed", "4243"]),
+    Sequence("weak", ["--scenario", "rigid", "--frames", "40", "--size", "320x256", "--seed", "9801",
+                      "--appearance", "texture=0,highlights=1,haze=0.3"]),
+    Sequence("loop_gap", ["--scenario", "loop", "--frames", "160", "--size", "320x256", "--seed", "8001"],
+             unreadable=tuple(range(90, 97))),
+]}
+
+CASES = {c.name: c for c in [
+    Case("default-f2f", "scanning", ["--mode", "frame2frame"]),
+    Case("default-f2m", "scanning", ["--mode", "frame2model"]),
+    Case("keyframes", "still", ["--mode", "frame2frame"]),
+    Case("keyframes-f2m", "still", ["--mode", "frame2model"]),
+    Case("refine", "scanning", ["--mode", "frame2model", "--set", "tracking.refine_passes=1"]),
+    Case("flags-rebuild", "weak", ["--mode", "frame2model", "--set", "health.cross_check=2"]),
+    Case("loop-reloc", "loop_gap", ["--mode", "frame2model", "--set", "graph.loop_closure=true"]),
+    Case("paper", "scanning", ["--config", str(ROOT / "configs" / "paper.yaml")]),
+    Case("residuals-2d", "scanning", ["--residuals", "2d"]),
+    Case("residuals-3d", "scanning", ["--residuals", "3d"]),
+    Case("constant", "scanning", ["--weights", "constant"]),
+    Case("groundtruth-poses", "scanning", ["--set", "tracking.poses=groundtruth"]),
+]}
+
+
+def render(out: Path) -> dict[str, Path]:
+    data = {}
+    for seq in SEQUENCES.values():
+        path = out / "data" / seq.name
+        if not (path / "groundtruth.txt").is_file():
+            subprocess.run([sys.executable, "-m", "slam.cli", "synth", str(path), *seq.synth, "--quiet"],
+                           check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+            for k in seq.unreadable:
+                (path / "video_frames" / f"{k:06d}l.png").write_bytes(b"not a png")
+        data[seq.name] = path
+    return data
+
+
+def run(tree: Path, data: Path, out: Path, args: list) -> tuple[int, str]:
+    shutil.rmtree(out, ignore_errors=True)
+    env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-m", "slam.cli", "run", str(data), "--out", str(out), "--quiet",
+                           "--set", "threads=1", *args], capture_output=True, text=True, cwd=tree, env=env)
+    return proc.returncode, (proc.stderr.strip().splitlines() or [""])[-1]
+
+
+def comparable(path: Path) -> bytes | None:
+    if not path.is_file():
+        return None
+    if path.name != "metrics.json":
+        return path.read_bytes()
+    metrics = json.loads(path.read_text())
+    for key in VOLATILE:
+        metrics.pop(key, None)
+    metrics.get("loop_closure", {}).pop("detection_ms_per_frame", None)
+    return json.dumps(metrics, indent=1, sort_keys=True).encode()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--base", required=True, help="the commit to compare with")
+    ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    ap.add_argument("--out", type=Path, default=ROOT / "runs" / "check_behaviour")
+    args = ap.parse_args()
+    out = args.out.resolve()
+    base = out / "base_tree"
+    if not (base / "slam").is_dir():
+        subprocess.run(["git", "worktree", "add", "--detach", "--force", str(base), args.base], check=True, cwd=ROOT)
+    else:
+        subprocess.run(["git", "checkout", "--detach", "--quiet", args.base], check=True, cwd=base)
+    data = render(out)
+    print("| case | sequence | " + " | ".join(FILES) + " | note |")
+    print("|---|---|" + "---|" * len(FILES) + "---|")
+    differ = False
+    for name in args.cases:
+        case = CASES[name]
+        runs = {}
+        notes = []
+        for label, tree, options in (("base", base, case.args), ("new", ROOT, case.new or case.args)):
+            code, last = run(tree, data[case.sequence], out / "runs" / name / label, options)
+            runs[label] = out / "runs" / name / label
+            if code != 0:
+                notes.append(f"{label} exit {code}: {last}")
+        cells = []
+        for f in FILES:
+            a, b = comparable(runs["base"] / f), comparable(runs["new"] / f)
+            same = a == b
+            differ |= not same
+            cells.append("-" if a is None and b is None else ("same" if same else "**differs**"))
+        print(f"| {name} | {case.sequence} | " + " | ".join(cells) + f" | {'; '.join(notes)} |", flush=True)
+    return 1 if differ else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
