@@ -209,7 +209,7 @@ def _rowsum(x: torch.Tensor) -> torch.Tensor:
     return x @ torch.ones(x.shape[1], dtype=x.dtype, device=x.device)
 
 
-class _Timer:
+class StageTimer:
     """Milliseconds per stage (synchronising the device when enabled, no-op otherwise)."""
 
     def __init__(self, enabled: bool, device: torch.device):
@@ -229,14 +229,14 @@ class _Timer:
 
 
 def fuse_frame(store: SurfelStore, cfg: MapConfig, cam: Camera, meas: Measurement, frame: int,
-               timer: _Timer | None = None, *, skip_covered: bool = SKIP_COVERED,
+               timer: StageTimer | None = None, *, skip_covered: bool = SKIP_COVERED,
                active_from: int | None = None) -> dict:
     """Fuse one prepared frame into ``store``; returns stats (matched, added, removed, visible, ...).
 
     ``skip_covered``: unmatched pixels on a neighbour's disc add no surfel (:func:`covered_pixels`).
     ``active_from``: only surfels last fused at this frame or later are matched, updated or
     carved (the active model); the others stay as they are."""
-    timer = timer or _Timer(False, store.device)
+    timer = timer or StageTimer(False, store.device)
     dev = store.device
     H, W = cam.height, cam.width
     HW = H * W

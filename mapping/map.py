@@ -7,7 +7,7 @@ import torch
 from . import export
 from .config import MapConfig
 from . import kernels
-from .fusion import FREE_SPACE_REL, MIN_FUSE_WEIGHT, SKIP_COVERED, _Timer, fuse_frame, measure
+from .fusion import FREE_SPACE_REL, MIN_FUSE_WEIGHT, SKIP_COVERED, StageTimer, fuse_frame, measure
 from .render import FAR_MM, NEAR_MM, Camera, ModelView, render, visible_set
 from .surfels import CHUNK_SIZE, COMPACT_FRACTION, INITIAL_CAPACITY, SurfelStore
 
@@ -70,7 +70,7 @@ class SurfelMap:
                 index or later (ElasticFusion's active/inactive split); the inactive ones are
                 neither matched, updated nor carved. None: every surfel.
         """
-        timer = _Timer(self.profile, self.device)
+        timer = StageTimer(self.profile, self.device)
         H, W = depth.shape[-2:]
         cam = Camera.make(K, T_wc, H, W, self.device)
         meas = measure(depth, color, cam, self.config, weight, valid, min_fuse_weight=self.min_fuse_weight)
@@ -109,7 +109,7 @@ class SurfelMap:
         ``seen_from``, ``seen_before``: only the surfels last fused at a frame index in
         ``[seen_from, seen_before)`` (the active model: ``seen_from``; the inactive one:
         ``seen_before``)."""
-        timer = _Timer(self.profile, self.device)
+        timer = StageTimer(self.profile, self.device)
         view, nvis = render(self.store, self.config, K, T_wc, int(height), int(width), stable_only, colour,
                             seen_from=seen_from, seen_before=seen_before)
         timer.lap("render")

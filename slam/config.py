@@ -17,7 +17,7 @@ from typing import Any
 import yaml
 
 from mapping.config import MapConfig
-from slam.datasets.config import DataConfig
+from slam.io.datasets.config import DataConfig
 from slam.errors import ConfigError
 from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
 
@@ -50,7 +50,7 @@ class TrackingConfig:
             pulls the flow, so the bar is high.
         fuse_weight: per-pixel fusion weight: ``w3d`` (the learned 3D weight over its per-frame
             median, clamped to 1; pixels the tracker could not weigh count fully, see
-            ``slam.pipeline.normalised_fusion_weight``; uniform without learned weights) or
+            ``slam.app.pipeline.normalised_fusion_weight``; uniform without learned weights) or
             ``uniform`` (every valid pixel counts fully: better on rigid scenes, worse where tissue
             deforms; docs/experiments.md).
         export_map: fuse a map in frame2frame too (without tracking against it) and export it.
@@ -111,7 +111,7 @@ class HealthConfig:
             NEES 3.3, 88 % inside the bound).
         cross_check: frame2model: each frame is also tracked against the last frame with its own
             flow (an estimate independent of the map) and the two are combined by their
-            covariances (``slam.cross_check``: a filter on the pose relative to the map); where
+            covariances (``slam.tracking.cross_check``: a filter on the pose relative to the map); where
             their squared Mahalanobis distance exceeds this (22.5: the 99.9 % chi-square bound of
             6 dof) the frame is flagged, reports the better-supported estimate and is not fused.
             0: no cross-check (the model view's estimate alone; 1.4x the fps at 320x256, and
@@ -129,7 +129,7 @@ class HealthConfig:
 
 @dataclass
 class GraphConfig:
-    """Frame2model's pose graph and loop closure (``slam.loop_closure``, ``slam.pose_graph``).
+    """Frame2model's pose graph and loop closure (``slam.tracking.loop_closure``, ``slam.tracking.pose_graph``).
 
     Attributes:
         loop_closure: keep a pose graph of keyframes and close loops: tracking and fusion use

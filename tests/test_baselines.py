@@ -31,7 +31,7 @@ def _spread(gt: np.ndarray) -> float:
 def test_depth_cache_is_our_stereo_depth(rigid):
     import torch
 
-    from slam.datasets import DataConfig, open_dataset
+    from slam.io.datasets import DataConfig, open_dataset
     from vo.odometry import StereoOdometry, VOConfig
     from vo.config import WeightsConfig
 
@@ -50,8 +50,8 @@ def test_depth_cache_is_our_stereo_depth(rigid):
 
 
 def test_open3d_odometry_recovers_rigid_trajectory(rigid):
-    from slam.datasets import DataConfig, open_dataset
-    from slam.evaluation import evaluate
+    from slam.io.datasets import DataConfig, open_dataset
+    from slam.evaluation.metrics import evaluate
 
     data, cache = rigid
     gt = open_dataset(data, DataConfig()).gt_poses

@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 
 from slam.batch.executors import Finished, Frames, LocalExecutor, Started
-from slam.cli import main
+from slam.app.cli import main
 from slam.config import load_config
-from slam.provenance import checkpoint_files, config_digest, provenance
+from slam.app.provenance import checkpoint_files, config_digest, provenance
 from tests import batch_work
 
 REPO = Path(__file__).resolve().parents[1]
-SLAM = [sys.executable, "-m", "slam.cli"]
+SLAM = [sys.executable, "-m", "slam"]
 SEQUENCES = (("a_rigid", "rigid", 11), ("b_breathing", "breathing", 12), ("c_scanning", "scanning", 13))
 FRAMES = 10
 

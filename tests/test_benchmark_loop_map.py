@@ -10,7 +10,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import benchmark_loop_map as B  # noqa: E402
 
-from slam.map_error import depth_errors_mm  # noqa: E402
+from slam.evaluation.map_error import depth_errors_mm  # noqa: E402
 
 
 def test_depth_errors_of_points_on_a_plane_and_behind_it():

@@ -7,10 +7,10 @@ import cv2
 import numpy as np
 import pytest
 
-from slam.calibration import (RawStereoCalibration, read_calibration, read_json_calibration, read_plain_yaml,
+from slam.io.calibration import (RawStereoCalibration, read_calibration, read_json_calibration, read_plain_yaml,
                               read_scared_yaml, read_stereomis_ini)
 from slam.errors import DataError
-from slam.rectification import (
+from slam.io.rectification import (
     ResizeOnly,
     StereoRectifier,
     make_rectifier,
@@ -272,7 +272,7 @@ def test_rectification_R1_maps_original_to_rectified_frame():
     q = rect.camera.K @ (Xr / Xr[2])
     found = blob_centroids(left, q[None, :2])[0]
     np.testing.assert_allclose(found, q[:2], atol=0.2)
-    # the pose relation documented in slam.rectification
+    # the pose relation documented in slam.io.rectification
     rng = np.random.default_rng(0)
     T_wc_orig = np.eye(4)
     T_wc_orig[:3, :3] = rotation(rng.normal(size=3), 20)

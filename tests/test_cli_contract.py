@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from slam.cli import main
-from slam.tum import read_tum, write_tum
+from slam.app.cli import main
+from slam.io.tum import read_tum, write_tum
 
 FRAMES = 10
 
@@ -226,7 +226,7 @@ def test_evaluate_exits_non_zero_when_a_run_is_not_a_result(sequence, tmp_path, 
 
 
 def test_failed_share_threshold():
-    from slam.pipeline import MAX_FAILED_SHARE, run_status
+    from slam.app.pipeline import MAX_FAILED_SHARE, run_status
 
     assert MAX_FAILED_SHARE == 0.5
     assert run_status(10, 5) == "ok" and run_status(10, 6) == "not a result: 6 of 10 frames failed"

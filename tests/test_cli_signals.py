@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from slam.tum import read_tum
+from slam.io.tum import read_tum
 
-SLAM = [sys.executable, "-m", "slam.cli"]
+SLAM = [sys.executable, "-m", "slam"]
 FRAMES = 10
 
 

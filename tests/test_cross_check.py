@@ -9,7 +9,7 @@ import torch
 
 from mapping import SurfelMap
 from mapping.config import MapConfig
-from slam.tracker import REBUILD_AFTER
+from slam.tracking.tracker import REBUILD_AFTER
 
 
 def test_forget_view_removes_the_surfels_a_view_sees():
@@ -35,8 +35,8 @@ def _run(data, tmp_path, name, cross_check: float, corrupt: range | None = None,
     are pushed 4 px sideways (confident but wrong, as on weak texture); at frame
     ``shift_map_at`` every surfel is moved 2 mm along the last view's optical axis (a wrong map)."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     cfg = load_config(None, ["tracking.mode=frame2model", f"health.cross_check={cross_check}", "threads=1",
                              "logging.progress=false"])
@@ -76,7 +76,7 @@ def clean_ate(rigid, tmp_path_factory):
 
 
 def test_the_cross_check_flags_a_wrong_model_estimate_and_recovers(rigid, clean_ate, tmp_path):
-    from slam.tracking_csv import read_tracking_csv
+    from slam.app.tracking_csv import read_tracking_csv
 
     broken, _ = _run(rigid, tmp_path, "broken", 0.0, range(12, 16))
     checked, metrics = _run(rigid, tmp_path, "checked", 22.5, range(12, 16))
@@ -115,7 +115,7 @@ def _translation(x_mm: float) -> np.ndarray:
 
 
 def test_agreeing_estimates_are_combined_by_their_covariances():
-    from slam.cross_check import CrossCheck, Estimate
+    from slam.tracking.cross_check import CrossCheck, Estimate
 
     check = CrossCheck(limit_d2=22.5, limit_mm=1e9)
     cov = np.diag([0.01] * 3 + [1e-6] * 3)
@@ -130,7 +130,7 @@ def test_agreeing_estimates_are_combined_by_their_covariances():
 
 
 def test_a_disagreement_keeps_the_better_estimate_and_widens_the_gate():
-    from slam.cross_check import CrossCheck, Estimate
+    from slam.tracking.cross_check import CrossCheck, Estimate
 
     check = CrossCheck(limit_d2=22.5, limit_mm=1e9)
     frame_cov = np.diag([0.01] * 3 + [1e-6] * 3)
@@ -153,9 +153,9 @@ def test_a_disagreement_keeps_the_better_estimate_and_widens_the_gate():
 
 def test_an_uncertain_pose_is_flagged_in_frame2frame(tmp_path):
     from slam.config import load_config
-    from slam.runner import run_from_config
+    from slam.app.runner import run_from_config
     from slam.synth import generate
-    from slam.tracking_csv import read_tracking_csv
+    from slam.app.tracking_csv import read_tracking_csv
 
     data = generate(tmp_path / "seq", "rigid", frames=6, size=(96, 80), seed=9602)
     runs = {}

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from slam.datasets import DataConfig, StereoFrame, detect_layout, open_dataset, parse_frames, specular_mask
-from slam.datasets.masks import combine_masks
+from slam.io.datasets import DataConfig, StereoFrame, detect_layout, open_dataset, parse_frames, specular_mask
+from slam.io.datasets.masks import combine_masks
 from slam.errors import ConfigError, DataError
-from slam.tum import write_tum
+from slam.io.tum import write_tum
 
 W, H = 64, 48
 K = np.array([[50.0, 0.0, 31.5], [0.0, 50.0, 23.5], [0.0, 0.0, 1.0]])
@@ -264,7 +264,7 @@ def test_scared_layout(tmp_path, tar):
     assert ds.layout == "scared" and len(ds) == 6
     np.testing.assert_allclose(ds.camera.K, K, atol=1e-9)  # size from the video: no size in the yaml
     assert ds.camera.baseline_mm == pytest.approx(BASELINE)
-    # camera-pose is world-to-camera (see slam/datasets/scared.py): T_wc = inv(camera-pose)
+    # camera-pose is world-to-camera (see slam/io/datasets/scared.py): T_wc = inv(camera-pose)
     np.testing.assert_allclose(ds.gt_poses, np.linalg.inv(T_cw), atol=1e-9)
     expected_t = 1000.0 + 10 * np.arange(6) if tar else np.arange(6) / 25.0
     np.testing.assert_allclose(ds.timestamps, expected_t)

@@ -73,7 +73,7 @@ def test_filtered_depth_cuts_the_3d_residual_at_the_true_pose(tmp_path, scenario
     """Training pairs of consecutive frames: with the filter the 3D residual at the true pose is a
     fraction of the stereo one, on a static camera over breathing tissue and on a moving camera
     (the filter's lag is the same in both frames and cancels); gain 1 is the unfiltered cache."""
-    from slam.training import build_pair_samples, load_train_config
+    from slam.training.trainer import build_pair_samples, load_train_config
 
     data, path = _rigid_pairs_config(tmp_path, scenario)
     res = {}
@@ -90,7 +90,7 @@ def test_filter_from_the_command_tracks_a_moving_camera(synth_dir, tmp_path):
     """``slam run --set depth.temporal_gain=0.1`` on a moving camera filmed in the StereoMIS raw
     layout (one unrectified mp4 with lens distortion): every frame tracked, the poses recovered as
     well as without the filter (to 0.05 mm), the setting in the written config."""
-    from slam.cli import main
+    from slam.app.cli import main
 
     data = synth_dir("rigid", 12, (320, 256), seed=5, raw=True)
     ate = {}
@@ -105,7 +105,7 @@ def test_filter_from_the_command_tracks_a_moving_camera(synth_dir, tmp_path):
 
 
 def test_filter_config_range(tmp_path, capsys):
-    from slam.cli import main
+    from slam.app.cli import main
 
     assert main(["run", str(tmp_path), "--set", "depth.temporal_gain=0"]) != 0
     assert "depth.temporal_gain must be in (0, 1]" in capsys.readouterr().err
@@ -150,8 +150,8 @@ def test_filter_only_while_the_camera_is_still(synth_dir, tmp_path, scenario, ex
     tracked frame is (nothing has moved yet), the later ones keep their stereo depth and are weighed
     by the networks trained on stereo depth."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     data = synth_dir(scenario, 8, (160, 128))
     cfg = load_config(None, ["logging.progress=false", "depth.temporal_gain=0.05", "depth.temporal_still_mm=0.1"])
@@ -180,7 +180,7 @@ def test_filter_only_while_the_camera_is_still(synth_dir, tmp_path, scenario, ex
 def test_pair_cache_key_ignores_the_filter_settings_that_do_not_change_the_pairs(tmp_path):
     """Off (gain 1), the filter's settings do not enter the key; ``temporal_still_mm`` never does
     (the cache filters every frame)."""
-    from slam.training import _cache_key, load_train_config
+    from slam.training.trainer import _cache_key, load_train_config
 
     data, path = _rigid_pairs_config(tmp_path, "rigid")
     key = lambda *o: _cache_key(load_train_config(path, list(o)), data)   # noqa: E731

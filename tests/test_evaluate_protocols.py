@@ -149,7 +149,7 @@ def scared(tmp_path_factory):
 
 
 def test_scared_standin_layout(scared):
-    from slam.datasets import DataConfig, detect_layout, open_dataset
+    from slam.io.datasets import DataConfig, detect_layout, open_dataset
 
     folder, _ = scared
     kf = folder / "dataset_1" / "keyframe_2"

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from slam import evaluation as ev
+from slam.evaluation import metrics as ev
 from slam.errors import SlamError
-from slam.tum import write_tum
+from slam.io.tum import write_tum
 
 
 # ------------------------------------------------------------------------------------------
@@ -289,15 +289,17 @@ def test_format_and_main_eval(tmp_path, capsys):
     write_tum(tmp_path / "gt.txt", stamps, gt)
     write_tum(tmp_path / "est.txt", stamps, est)
     m = ev.evaluate_files(tmp_path / "gt.txt", tmp_path / "est.txt")
-    text = ev.format_metrics(m)
+    from slam.app.eval_command import format_metrics, main_eval
+
+    text = format_metrics(m)
     assert "ATE-RMSE" in text and "RPE trans" in text and "RPE rot" in text and f"{m['ate_rmse_mm']:.4f}" in text
 
-    rc = ev.main_eval(tmp_path / "gt.txt", tmp_path / "est.txt", json_path=tmp_path / "m.json")
+    rc = main_eval(tmp_path / "gt.txt", tmp_path / "est.txt", json_path=tmp_path / "m.json")
     out = capsys.readouterr().out
     assert rc == 0 and "ATE-RMSE" in out and "30 matched" in out
     assert json.loads((tmp_path / "m.json").read_text()) == pytest.approx(m)
 
-    from slam.cli import main
+    from slam.app.cli import main
 
     rc = main(["eval", str(tmp_path / "gt.txt"), str(tmp_path / "missing.txt")])
     err = capsys.readouterr().err

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import torch
 
-from slam.cli import main
-from slam.datasets.masks import combine_masks, dark_mask
+from slam.app.cli import main
+from slam.io.datasets.masks import combine_masks, dark_mask
 from vo.correspondence.dis import DisFlow, match_exposure
 
 

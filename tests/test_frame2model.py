@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from slam.cli import main
-from slam.tracker import model_coverage, normalised_fusion_weight
+from slam.app.cli import main
+from slam.tracking.tracker import model_coverage, normalised_fusion_weight
 from vo.odometry import Correspondences, masked_blur, relight
 
 
@@ -77,7 +77,7 @@ def test_relight_gives_the_render_the_target_shading_without_moving_edges():
 def _odometry_and_first_view(synth_dir):
     """A constant-weight VO on a 160x128 rigid sequence and the view of its first frame."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
+    from slam.io.datasets import open_dataset
     from vo.odometry import StereoOdometry
 
     data = synth_dir("rigid", 3, (160, 128))
@@ -188,7 +188,7 @@ def test_masked_pixels_are_inpainted_for_the_flow_against_a_model_view(synth_dir
     it against a model view that has none; inpainting the frame's masked pixels first keeps
     the flow of its surroundings on the tissue's motion. Against a real frame nothing changes."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
+    from slam.io.datasets import open_dataset
     from vo.odometry import StereoOdometry, View
 
     data = synth_dir("rigid", 3, (160, 128))
@@ -228,8 +228,8 @@ def test_robust_3d_step_follows_the_reference_kind(synth_dir, tmp_path):
     """The robust 3D step (``solver.robust_3d_mm``) runs against camera frames, not against views
     rendered from the map (refinement passes too): the reference tells which it is."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     data = synth_dir("rigid", 6, (160, 128))
     cfg = load_config(None, ["tracking.mode=frame2model", "tracking.refine_passes=1"])
@@ -262,7 +262,7 @@ def test_model_views_are_weighted_by_the_model_reference_networks(synth_dir, tmp
     import dataclasses
 
     from slam.config import load_config
-    from slam.datasets import open_dataset
+    from slam.io.datasets import open_dataset
     from vo.odometry import StereoOdometry
     from vo.weights import CHECKPOINT_DIR, model_reference_checkpoint
 

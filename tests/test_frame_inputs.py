@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from slam.datasets import open_dataset
-from slam.datasets.config import DataConfig
+from slam.io.datasets import open_dataset
+from slam.io.datasets.config import DataConfig
 from slam.errors import ConfigError, DataError
 
 SIZE = (160, 128)
@@ -111,7 +111,7 @@ def test_every_calibration_kind_and_one_made_at_twice_the_size(rigid, tmp_path, 
     kinds = {}
     shutil.copy(rigid / "StereoCalibration.ini", tmp_path / "c.ini")
     kinds["ini"] = tmp_path / "c.ini"
-    from slam.calibration import read_stereomis_ini
+    from slam.io.calibration import read_stereomis_ini
 
     raw = read_stereomis_ini(rigid / "StereoCalibration.ini")
     fs = cv2.FileStorage(str(tmp_path / "c.yaml"), cv2.FILE_STORAGE_WRITE)
@@ -151,7 +151,7 @@ def test_unrectified_frames_and_the_video_file_match_the_raw_layout(raw, tmp_pat
     """Frames taken out of an unrectified video into folders, with the video's .ini beside them, are
     rectified (distortion in the calibration) exactly as the StereoMIS raw layout rectifies the
     video; the video given as a file with --calibration, and the same frames side by side, too."""
-    from slam.datasets.video import StackedStereoVideo
+    from slam.io.datasets.video import StackedStereoVideo
 
     ref = open_dataset(raw)
     assert ref.layout == "stereomis_raw"
@@ -243,7 +243,7 @@ def test_timestamps_and_ground_truth_at_another_rate(rigid, tmp_path):
 def test_frame_folder_and_video_file_from_the_command(raw, tmp_path, capsys):
     """`slam run VIDEO --calibration FILE` and `slam inspect` on it: poses recovered, the rectified
     pair written, no vertical disparity left."""
-    from slam.cli import main
+    from slam.app.cli import main
 
     video = next(raw.glob("*.mp4"))
     ini = raw / "StereoCalibration.ini"
@@ -269,7 +269,7 @@ def test_thresholds_follow_the_frame_rate(rigid, tmp_path):
     25 fps the config is untouched. A run on every fifth
     frame records its rate."""
     from slam.config import at_frame_rate, load_config
-    from slam.pipeline import Pipeline
+    from slam.app.pipeline import Pipeline
 
     cfg = load_config(None, [])
     assert at_frame_rate(cfg, 25.0) is cfg
@@ -293,7 +293,7 @@ def test_inspect_warns_about_swapped_and_prerectified_views(rigid, raw, tmp_path
     """Views stored rectified but described by a distorted calibration are row-aligned already;
     left and right swapped give negative disparities."""
     from slam.config import load_config
-    from slam.inspect import inspect
+    from slam.app.inspect import inspect
 
     src = open_dataset(rigid)
     out = _write_folders(src, tmp_path / "swapped", names=("right", "left"))     # the folders' names swapped

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from slam.config import HealthConfig
-from slam.health import HealthMonitor, health_summary, nees, relative_error
+from slam.tracking.health import HealthMonitor, health_summary, nees, relative_error
 from vo.config import SolverConfig
 from vo.health import PoseFit, pose_fit, weighted_median
 from vo.lie import se3_exp, se3_log
@@ -130,9 +130,9 @@ def metrics_timing(run, stage: str) -> float:
 
 def test_a_run_writes_tracking_csv_and_its_summary(tmp_path):
     from slam.config import load_config
-    from slam.runner import run_from_config
+    from slam.app.runner import run_from_config
     from slam.synth import generate
-    from slam.tracking_csv import COLUMNS, read_tracking_csv
+    from slam.app.tracking_csv import COLUMNS, read_tracking_csv
 
     data = generate(tmp_path / "seq", "rigid", frames=8, size=(96, 80), seed=9601)
     cfg = load_config(None, ["tracking.mode=frame2model", "logging.progress=false", "threads=1",
@@ -175,7 +175,7 @@ def _bowl(H: int = 96, W: int = 128, f: float = 120.0):
 
 
 def test_the_point_to_plane_check_sees_a_pose_off_the_surface():
-    from slam.geometric_check import point_to_plane_check
+    from vo.geometric_check import point_to_plane_check
 
     depth, valid, K = _bowl()
     exact = point_to_plane_check(depth, valid, depth, valid, K, np.eye(4))

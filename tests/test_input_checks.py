@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
-from slam.calibration import RawStereoCalibration, read_stereomis_ini
-from slam.datasets import open_dataset
-from slam.datasets.config import DataConfig
+from slam.io.calibration import RawStereoCalibration, read_stereomis_ini
+from slam.io.datasets import open_dataset
+from slam.io.datasets.config import DataConfig
 from slam.errors import DataError
 from tests.test_calibration import write_ini, write_scared_yaml
 
@@ -151,7 +151,7 @@ def test_a_calibration_for_another_size_is_refused_on_opening(sources, tmp_path,
 def test_the_issue_s_run_stops_before_the_first_frame(sources, tmp_path, capsys):
     """``slam run`` on a StereoMIS folder whose .ini says 1000x1000: exit 2 with one line, where it
     used to track, fail every frame and exit 0."""
-    from slam.cli import main
+    from slam.app.cli import main
 
     rigid, _ = sources
     seq = tmp_path / "seq"
@@ -251,7 +251,7 @@ def test_a_lone_file_that_is_no_calibration_is_an_error_suggesting_the_option(so
         with pytest.raises(DataError) as err:
             open_dataset(data, native())
         assert str(err.value) == expected
-    from slam.cli import main
+    from slam.app.cli import main
 
     assert main(["inspect", str(folder / video.name), "--out", str(tmp_path / "insp")]) == 2
     assert capsys.readouterr().err.strip() == f"slam inspect: error: {expected}"
@@ -268,7 +268,7 @@ def test_a_lone_file_that_is_no_calibration_is_an_error_suggesting_the_option(so
 def test_inspect_says_whether_rectified_frames_were_resized(sources, tmp_path, capsys, size, expected):
     """It said "resized only" for frames it did not resize."""
     from slam.config import load_config
-    from slam.inspect import inspect
+    from slam.app.inspect import inspect
 
     rigid, _ = sources
     config = load_config(None, [f"data.width={size[0]}", f"data.height={size[1]}"])

@@ -6,8 +6,8 @@ import dataclasses
 import numpy as np
 
 from slam.config import load_config
-from slam.datasets import open_dataset
-from slam.pipeline import Pipeline
+from slam.io.datasets import open_dataset
+from slam.app.pipeline import Pipeline
 
 
 def _run(data, tmp_path, name, overrides, fail_at=None):
@@ -93,8 +93,8 @@ def test_keyframes_from_the_command_on_a_raw_video_layout(synth_dir, tmp_path):
 
     import yaml
 
-    from slam.cli import main
-    from slam.tum import read_tum
+    from slam.app.cli import main
+    from slam.io.tum import read_tum
 
     raw = synth_dir("rigid", 12, (320, 256), seed=5, raw=True)
     out = tmp_path / "run"
@@ -166,7 +166,7 @@ def test_filtered_depth_runs_frame_to_frame_while_tracking_against_the_keyframe(
 
 def test_keyframe_settings_range(tmp_path, capsys):
     """A negative still threshold or a gap below 1 is a one-line error naming the setting."""
-    from slam.cli import main
+    from slam.app.cli import main
 
     assert main(["run", str(tmp_path), "--set", "tracking.keyframe_still_mm=-0.1"]) != 0
     assert "tracking.keyframe_still_mm must be >= 0" in capsys.readouterr().err

@@ -10,7 +10,7 @@ pytestmark = pytest.mark.slow
 
 
 def _run(data, out, *extra):
-    subprocess.run([sys.executable, "-m", "slam.cli", "run", str(data), "--out", str(out), "--quiet", *extra],
+    subprocess.run([sys.executable, "-m", "slam", "run", str(data), "--out", str(out), "--quiet", *extra],
                    check=True, capture_output=True)
     return json.loads((out / "metrics.json").read_text())
 

@@ -1,4 +1,4 @@
-"""Loop closure end to end (slam.loop_closure through the pipeline): a synthetic loop whose
+"""Loop closure end to end (slam.tracking.loop_closure through the pipeline): a synthetic loop whose
 camera returns to tissue it saw 80 frames before."""
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from slam.config import load_config
-from slam.datasets import open_dataset
-from slam.loop_closure import LoopClosure
-from slam.pipeline import Pipeline
-from slam.tum import read_tum
+from slam.io.datasets import open_dataset
+from slam.tracking.loop_closure import LoopClosure
+from slam.app.pipeline import Pipeline
+from slam.io.tum import read_tum
 
 # a 60 mm loop at 160x128: the start's surfels are inactive after 30 frames and back in view
 # from frame ~90 on

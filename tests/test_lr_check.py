@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from slam.config import load_config
-from slam.datasets import open_dataset
+from slam.io.datasets import open_dataset
 from vo.odometry import StereoOdometry
 
 
@@ -40,7 +40,7 @@ def test_left_right_check_removes_the_bad_depths(synth_dir, scenario):
 def test_pipeline_starts_the_solver_from_the_last_motion(synth_dir, tmp_path):
     """``solver.init: constant_velocity``: each frame's solve starts from the previous frame's
     tracked motion (was ignored by ``slam run``); ``identity`` starts from no motion."""
-    from slam.pipeline import Pipeline
+    from slam.app.pipeline import Pipeline
 
     data = synth_dir("rigid", 6, (160, 128))
     for init in ("constant_velocity", "identity"):

@@ -12,10 +12,10 @@ import json
 import numpy as np
 import pytest
 
-from slam.cli import main
-from slam.datasets import open_dataset
-from slam.map_error import depth_errors_mm as map_depth_errors
-from slam.tum import read_tum
+from slam.app.cli import main
+from slam.io.datasets import open_dataset
+from slam.evaluation.map_error import depth_errors_mm as map_depth_errors
+from slam.io.tum import read_tum
 
 
 def depth_errors_mm(ply, data, frame_ids) -> np.ndarray:

@@ -20,7 +20,7 @@ def load_tool():
 
 
 def test_weight_hook_sees_every_solve_and_a_common_scale_leaves_the_pose(synth_dir):
-    from slam.datasets import DataConfig, open_dataset
+    from slam.io.datasets import DataConfig, open_dataset
     from vo.config import SolverConfig, WeightsConfig
     from vo.odometry import StereoOdometry, VOConfig
 

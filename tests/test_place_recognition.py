@@ -1,4 +1,4 @@
-"""Appearance loop candidates (slam.place_recognition): ORB against a keyframe, PnP for the pose."""
+"""Appearance loop candidates (slam.tracking.place_recognition): ORB against a keyframe, PnP for the pose."""
 from __future__ import annotations
 
 import cv2
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from slam.config import load_config
-from slam.datasets import open_dataset
-from slam.place_recognition import PlaceRecognition
+from slam.io.datasets import open_dataset
+from slam.tracking.place_recognition import PlaceRecognition
 
 
 @pytest.fixture(scope="module")

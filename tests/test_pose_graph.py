@@ -1,4 +1,4 @@
-"""The pose graph (slam.pose_graph): GTSAM's conventions, loop edges, false loops rejected."""
+"""The pose graph (slam.tracking.pose_graph): GTSAM's conventions, loop edges, false loops rejected."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from slam.pose_graph import PoseGraph, compose, log_error, to_gtsam_covariance
+from slam.tracking.pose_graph import PoseGraph, compose, log_error, to_gtsam_covariance
 from vo.lie import se3_exp
 
 
@@ -126,7 +126,7 @@ def _circle_pose(s: float) -> np.ndarray:
 
 def test_keyframes_culled_on_a_camera_circling_the_same_place():
     from slam.config import GraphConfig
-    from slam.loop_closure import LoopClosure
+    from slam.tracking.loop_closure import LoopClosure
 
     per_lap = 2 * np.pi * 20.0
     steps = np.arange(0.0, 3 * per_lap, 0.5)        # three laps, 0.5 mm per frame

@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from slam.prefetch import Prefetcher
+from slam.app.prefetch import Prefetcher
 
 
 def test_prefetcher_reads_ahead_in_one_thread_and_reraises():
@@ -44,8 +44,8 @@ def test_read_ahead_gives_the_same_run_in_another_thread(synth_dir, tmp_path):
     import torch
 
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     data = synth_dir("rigid", 6, (160, 128))
     before = torch.get_num_threads()
@@ -89,8 +89,8 @@ def test_flow_ahead_gives_the_same_run_and_goes_to_the_idle_thread(synth_dir, tm
     import numpy as np
 
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     data = synth_dir("rigid", 6, (160, 128))
     extra = [] if mode == "frame2frame" else ["tracking.mode=frame2model", "tracking.flow_reference=last_frame"]
@@ -134,7 +134,7 @@ def test_flow_ahead_is_taken_only_against_the_view_it_was_computed_for(synth_dir
     import numpy as np
 
     from slam.config import load_config
-    from slam.datasets import open_dataset
+    from slam.io.datasets import open_dataset
     from vo.odometry import StereoOdometry
 
     data = synth_dir("rigid", 6, (160, 128))

@@ -38,7 +38,7 @@ def _color(frame) -> torch.Tensor:
 @pytest.fixture(scope="module")
 def fused(synth_dir):
     """A rigid sequence of our generator, every other frame fused with its exact depth."""
-    from slam.datasets import DataConfig, open_dataset
+    from slam.io.datasets import DataConfig, open_dataset
 
     ds = open_dataset(synth_dir("rigid", 19, (W, H), seed=2), DataConfig())
     K, gt = ds.camera.K, ds.gt_poses

@@ -1,4 +1,4 @@
-"""Rerun logging (slam/rerun_log.py): entities and per-frame counts in a saved .rrd, the encoded
+"""Rerun logging (slam/app/rerun_log.py): entities and per-frame counts in a saved .rrd, the encoded
 images and depth read back, the trajectory logged in parts, ``logging.rerun_every``, the file's
 size per frame on a real run, the flow and weight colour codes, the blueprint, and that rerun
 stays unimported unless asked for."""
@@ -18,9 +18,9 @@ import torch
 rr = pytest.importorskip("rerun")
 
 from slam.config import LoggingConfig, SlamConfig  # noqa: E402
-from slam.pipeline import FrameRecord  # noqa: E402
-import slam.rerun_log as rl  # noqa: E402
-from slam.rerun_log import RerunLogger, colormap_u8, decode_depth_png, flow_to_rgb  # noqa: E402
+from slam.app.pipeline import FrameRecord  # noqa: E402
+import slam.app.rerun_log as rl  # noqa: E402
+from slam.app.rerun_log import RerunLogger, colormap_u8, decode_depth_png, flow_to_rgb  # noqa: E402
 from vo.camera import StereoCamera  # noqa: E402
 from vo.odometry import TrackResult, View  # noqa: E402
 
@@ -278,7 +278,7 @@ def test_without_ground_truth_and_map_only_at_the_end(tmp_path):
 
 
 def test_spawn_failure_falls_back_to_the_file(tmp_path, monkeypatch):
-    import slam.rerun_log as rl
+    import slam.app.rerun_log as rl
 
     def no_viewer(**kwargs):
         raise RuntimeError("no viewer here")
@@ -463,8 +463,8 @@ class _CapturingLogger(RerunLogger):
 
 def _synth_run(data: Path, out: Path, overrides: list) -> tuple:
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     config = load_config(None, ["tracking.mode=frame2model", "threads=1", "logging.progress=false",
                                 f"logging.rerun={out / 'run.rrd'}", *overrides])
@@ -523,7 +523,7 @@ def test_synth_run_file_per_frame(synth_recording):
 
 
 def test_synth_run_rerun_every(synth_dir, tmp_path):
-    from slam.cli import main
+    from slam.app.cli import main
 
     data = synth_dir("scanning", SYNTH_FRAMES, (160, 128))
     path = tmp_path / "every.rrd"
@@ -535,7 +535,7 @@ def test_synth_run_rerun_every(synth_dir, tmp_path):
     assert frames[(FLOW, "EncodedImage:blob")] == [5, 10]
     assert frames[(EST, "LineStrips3D:strips")] == list(range(SYNTH_FRAMES))
     est = _path_at(_rows(path, "/world/trajectory/estimate/"), SYNTH_FRAMES - 1)
-    from slam.tum import read_tum
+    from slam.io.tum import read_tum
 
     _, poses = read_tum(tmp_path / "run" / "trajectory.txt")
     np.testing.assert_allclose(est, poses[:, :3, 3] / 1000.0, atol=1e-5)
@@ -621,10 +621,10 @@ def test_colour_codes_match_a_float_reference_and_leave_the_input():
 def test_rerun_not_imported_unless_asked():
     code = (
         "import sys\n"
-        "import slam.runner, slam.pipeline\n"
+        "import slam.app.runner, slam.app.pipeline\n"
         "from types import SimpleNamespace\n"
         "from slam.config import SlamConfig\n"
-        "assert slam.runner.make_logger(SlamConfig(), SimpleNamespace()) is None\n"
+        "assert slam.app.runner.make_logger(SlamConfig(), SimpleNamespace()) is None\n"
         "bad = sorted(m for m in sys.modules if m == 'rerun' or m.startswith(('rerun.', 'rerun_bindings')))\n"
         "assert not bad, bad\n"
         "print('ok')\n"
@@ -634,7 +634,7 @@ def test_rerun_not_imported_unless_asked():
 
 
 def test_make_logger_builds_a_rerun_logger(tmp_path):
-    from slam.runner import make_logger
+    from slam.app.runner import make_logger
 
     config = SlamConfig()
     config.logging.rerun = str(tmp_path / "out" / "run.rrd")

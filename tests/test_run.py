@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slam.cli import main
-from slam.tum import read_tum
+from slam.app.cli import main
+from slam.io.tum import read_tum
 
-SLAM = [sys.executable, "-m", "slam.cli"]
+SLAM = [sys.executable, "-m", "slam"]
 
 
 def run_cli(*args) -> subprocess.CompletedProcess:
@@ -102,8 +102,8 @@ def test_sigint_leaves_a_valid_trajectory(synth_dir, tmp_path):
 def test_interrupted_before_the_first_frame_and_frame_reports(synth_dir, tmp_path, monkeypatch):
     """Ctrl-C before any frame still writes metrics.json; ``on_frame`` hears of every frame."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     data = synth_dir("rigid", 30, (160, 128))
     config = load_config(None, ["weights.mode=constant", "logging.progress=false"])

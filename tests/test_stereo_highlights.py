@@ -11,8 +11,8 @@ def _disc(H, W, cy, cx, r):
 
 
 def test_dataset_frames_carry_both_views_highlights(synth_dir):
-    from slam.datasets import open_dataset
-    from slam.datasets.masks import specular_mask
+    from slam.io.datasets import open_dataset
+    from slam.io.datasets.masks import specular_mask
 
     ds = open_dataset(synth_dir("rigid", 2, (160, 128)))
     fr = ds.frame(0)
@@ -30,7 +30,7 @@ def test_stereo_depth_around_highlights_is_matched_on_the_tissue(synth_dir, shif
     a ring around them is pulled far off; with it (and the match check against the right view's
     highlights) it stays within a few times the error far from them."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
+    from slam.io.datasets import open_dataset
     from vo.odometry import StereoOdometry
 
     ds = open_dataset(synth_dir("rigid", 2, (160, 128)))

@@ -12,7 +12,7 @@ import pytest
 from slam.errors import DataError
 from slam.synth import SCENARIOS, generate
 from slam.synth.camera_paths import make_path
-from slam.tum import read_tum
+from slam.io.tum import read_tum
 
 SIZE = (96, 80)
 FRAMES = {"rigid": 8, "breathing": 6, "scanning": 6, "deforming": 8, "loop": 300}

@@ -122,11 +122,11 @@ def test_parse_appearance():
 
 def test_synth_command_takes_an_appearance(tmp_path):
     out = tmp_path / "cli"
-    done = subprocess.run([sys.executable, "-m", "slam.cli", "synth", str(out), "--scenario", "rigid", "--frames", "1",
+    done = subprocess.run([sys.executable, "-m", "slam", "synth", str(out), "--scenario", "rigid", "--frames", "1",
                            "--size", "64x48", "--appearance", "texture=0.2,haze=0.3"], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert json.loads((out / "synth.json").read_text())["appearance"]["haze"] == 0.3
-    bad = subprocess.run([sys.executable, "-m", "slam.cli", "synth", str(tmp_path / "bad"), "--scenario", "rigid",
+    bad = subprocess.run([sys.executable, "-m", "slam", "synth", str(tmp_path / "bad"), "--scenario", "rigid",
                           "--frames", "1", "--size", "64x48", "--appearance", "texture=5"], capture_output=True, text=True)
     assert bad.returncode != 0
     assert len(bad.stderr.strip().splitlines()) == 1 and "texture" in bad.stderr

@@ -4,9 +4,9 @@ import json
 
 import numpy as np
 
-from slam.cli import main
-from slam.datasets import DataConfig, open_dataset
-from slam.tum import read_tum
+from slam.app.cli import main
+from slam.io.datasets import DataConfig, open_dataset
+from slam.io.tum import read_tum
 
 
 def test_synth_deforming_reads_back(tmp_path):

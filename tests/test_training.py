@@ -4,7 +4,7 @@ import pytest
 import torch
 import yaml
 
-from slam.cli import main
+from slam.app.cli import main
 from vo.weights import (DEPTH_CHANGE_REL, IN_CHANNELS, INPUT_VERSION, WeightInputs, WeightNetworks,
                         load_weight_networks, network_inputs)
 
@@ -59,7 +59,7 @@ def test_training_with_the_first_input_layout(tmp_path):
 def test_validation_holds_out_whole_sequences(tmp_path):
     """`optim.split: sequence` (the default) validates on sequences no training pair comes from,
     one per scenario here; with one sequence per scenario it falls back to a split of the pairs."""
-    from slam.training import load_train_config, sequence_name, training_data
+    from slam.training.trainer import load_train_config, sequence_name, training_data
 
     cfg_dict = {**TINY, "optim": {**TINY["optim"], "val_fraction": 0.5},
                 "data": {**TINY["data"], "seeds": [5000, 5001], "pairs_per_sequence": 4,
@@ -165,7 +165,7 @@ def _residuals_at_true_pose_mm(samples: list[dict], max_depth_mm: float) -> torc
 def test_pair_samples_with_the_generators_depth(tmp_path):
     """``depth.source=groundtruth``: the pair samples' points are the exact depth back-projected, so
     at the true pose the 3D residual of a rigid scene is what the flow leaves (the stereo adds most of it)."""
-    from slam.training import build_pair_samples, load_train_config
+    from slam.training.trainer import build_pair_samples, load_train_config
 
     data, path = _rigid_pairs_config(tmp_path, frames=6, pairs=4)
     errors = {}
@@ -187,7 +187,7 @@ def test_pair_samples_against_model_views(tmp_path):
     """``data.reference: model``: the reference is the surfel map fused at the ground-truth poses and
     rendered at the reference frame's pose (what frame2model tracks against): with exact depth the true
     pose still aligns the current points with the rendered ones, which are not the frame's own."""
-    from slam.training import build_pair_samples, load_train_config
+    from slam.training.trainer import build_pair_samples, load_train_config
 
     data, path = _rigid_pairs_config(tmp_path, frames=10, pairs=6)
     per_reference = {}
@@ -257,7 +257,7 @@ def test_chain_loss_on_consecutive_pairs(tmp_path):
     runs on chains and its validation loss is the chain loss."""
     import random
 
-    from slam.training import chain_pose_loss, chain_runs, chains_of, draw_chains, evaluate_loss, load_train_config
+    from slam.training.trainer import chain_pose_loss, chain_runs, chains_of, draw_chains, evaluate_loss, load_train_config
     from vo.lie import se3_exp, se3_log
 
     # consecutive pairs of two sequences; pair 5 -> 6 of "a" is missing (too few valid pixels)
@@ -302,7 +302,7 @@ def test_chain_loss_on_consecutive_pairs(tmp_path):
     assert main(["train", "--config", str(path), "--out", str(tmp_path / "chain")]) == 0
     ckpt = torch.load(tmp_path / "chain" / "weights_2d3d.pt", weights_only=False)["meta"]
     assert ckpt["train_config"]["data"]["chain_length"] == 3 and ckpt["val_loss"] > 0
-    from slam.training import training_data
+    from slam.training.trainer import training_data
     tcfg = load_train_config(path)
     _, train_set, val = training_data(tcfg, progress=False)
     assert all("seq" in s for s in train_set) and len(train_set) + len(val) <= 2 * 11   # every consecutive pair
@@ -318,7 +318,7 @@ def test_training_sequences_with_random_looks(tmp_path):
     import json
 
     from slam.synth.appearance import random_appearance
-    from slam.training import appearance_seed, load_train_config, training_sequences
+    from slam.training.trainer import appearance_seed, load_train_config, training_sequences
 
     cfg = dict(TINY)
     cfg["data"] = {**TINY["data"], "frames": 3, "cache_dir": str(tmp_path / "cache"), "workers": 2}

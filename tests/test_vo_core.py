@@ -188,7 +188,7 @@ def test_robust_3d_step_ignores_a_non_rigid_patch(synth_dir):
     the camera (tissue that moved non-rigidly): the 3D residuals there pull the plain solution off
     the true motion; one Cauchy-reweighted step (``solver.robust_3d_mm``) recovers it."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
+    from slam.io.datasets import open_dataset
     from vo.odometry import Correspondences, StereoOdometry, View, cauchy_weights_3d
     from vo.geometry import backproject, pixel_grid
     from vo.lie import se3_exp

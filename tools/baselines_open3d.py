@@ -66,7 +66,7 @@ def data_overrides(size: tuple[int, int] | None) -> list[str]:
 def open_sequence(data: str | Path, overrides: list[str], frames: int | str | None):
     """The dataset as our pipeline reads it (same rectification, resizing, masks, frames)."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
+    from slam.io.datasets import open_dataset
 
     cfg = load_config(None, list(overrides))
     dataset = open_dataset(Path(data), cfg.data)
@@ -301,7 +301,7 @@ def run_ours(data: str, overrides: list[str], out: str, frames=None, mode: str =
     per-stage means; ``track_s`` excludes reading frames and the stereo depth (comparable with the
     baselines), ``total_s`` includes the stereo depth."""
     from slam.config import load_config
-    from slam.runner import run_from_config
+    from slam.app.runner import run_from_config
 
     cfg = load_config(None, [*overrides, f"tracking.mode={mode}", "logging.progress=false"])
     result = run_from_config(data, cfg, out, frames, print_summary=False, overwrite=True)

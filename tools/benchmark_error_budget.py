@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.config import load_config
-from slam.runner import run_from_config
+from slam.app.runner import run_from_config
 from slam.synth import generate
 
 

@@ -42,12 +42,12 @@ from slam.batch.executors import ray_available  # noqa: E402
 from slam.batch.runner import BatchOptions  # noqa: E402
 from slam.batch.synth import synthesize_or_fail  # noqa: E402
 from slam.batch.tasks import SynthTask  # noqa: E402
-from slam.cli import parse_size  # noqa: E402
+from slam.app.cli import parse_size  # noqa: E402
 
 SEQUENCES = (("s1_rigid", "rigid", 5001), ("s2_breathing", "breathing", 5002), ("s3_scanning", "scanning", 5003),
              ("s4_deforming", "deforming", 5004), ("s5_loop", "loop", 5005), ("s6_scanning", "scanning", 5006))
 MODES = ("frame2frame", "frame2model")
-SLAM = [sys.executable, "-m", "slam.cli"]
+SLAM = [sys.executable, "-m", "slam"]
 
 
 def make_data(folder: Path, frames: int, size: tuple[int, int]) -> None:

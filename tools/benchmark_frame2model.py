@@ -43,8 +43,8 @@ def run_one(job: dict) -> dict:
 
     torch.set_num_threads(1)
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     # one torch thread per worker process (the workers share the cores)
     cfg = load_config(None, [*METHODS[job["method"]], "logging.progress=false", "threads=1", *job["extra"]])

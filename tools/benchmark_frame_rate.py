@@ -26,8 +26,8 @@ import numpy as np
 def flow_px(data: Path, step: int) -> tuple[float, float]:
     """Median and 95th percentile of the rigid flow's magnitude (pixels) between frames ``step``
     apart, from the ground-truth poses and depth (every 5th pair)."""
-    from slam.datasets import open_dataset
-    from slam.rectification import original_to_rect_pose
+    from slam.io.datasets import open_dataset
+    from slam.io.rectification import original_to_rect_pose
     from vo.geometry import backproject, pixel_grid, project
     import torch
 
@@ -52,8 +52,8 @@ def run_one(job: dict) -> dict:
 
     torch.set_num_threads(1)
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     cfg = load_config(None, [f"tracking.mode={job['mode']}", "logging.progress=false", "threads=1", *job["extra"]])
     dataset = open_dataset(Path(job["data"]), cfg.data).select(f"::{job['step']}")
@@ -74,7 +74,7 @@ def main() -> None:
     ap.add_argument("--out", default="runs/frame_rate")
     ap.add_argument("--set", action="append", default=[])
     args = ap.parse_args()
-    from slam.cli import parse_size
+    from slam.app.cli import parse_size
     from slam.synth import generate
 
     out = Path(args.out)

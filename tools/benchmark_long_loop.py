@@ -36,8 +36,8 @@ def run_one(job: dict) -> dict:
 
     torch.set_num_threads(1)
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     cfg = load_config(None, [*METHODS[job["method"]], "logging.progress=false", "threads=1", *job["extra"]])
     dataset = open_dataset(Path(job["data"]), cfg.data)

@@ -8,7 +8,7 @@ Each seed's ``loop`` sequence (the camera returns to its start at the last frame
 method (``benchmark_frame2model.py``'s: ``rendered`` is frame2model with
 ``graph.loop_closure=false``, ``loop_closure`` with it on; one torch thread per worker). The
 exported ``map.ply`` (stable surfels) is projected into the ground-truth frames 0, N/4, N/2, 3N/4
-and N-1 (``slam.map_error``). Printed and written as markdown and JSON, per run: the ATE, the
+and N-1 (``slam.evaluation.map_error``). Printed and written as markdown and JSON, per run: the ATE, the
 stable surfels, the median distance to the true surface over every point a check frame sees, and
 in the overlap (the points both the first and the last frame see, where the loop closes) the
 median distance and the share of points more than 2 mm off the true surface: a doubled surface
@@ -36,8 +36,8 @@ def map_surface_errors(ply: Path, data: Path) -> dict:
     """The exported map ``ply`` (metres) against the true depth of the sequence ``data``."""
     import open3d as o3d
 
-    from slam.datasets import open_dataset
-    from slam.map_error import depth_errors_mm
+    from slam.io.datasets import open_dataset
+    from slam.evaluation.map_error import depth_errors_mm
 
     pts_mm = np.asarray(o3d.io.read_point_cloud(str(ply)).points) * 1000.0
     ds = open_dataset(data)
@@ -64,8 +64,8 @@ def run_one(job: dict) -> dict:
 
     torch.set_num_threads(1)
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     cfg = load_config(None, [*METHODS[job["method"]], "logging.progress=false", "threads=1", *job["extra"]])
     result = Pipeline(cfg, open_dataset(Path(job["data"]), cfg.data), Path(job["out"])).run(progress=False)

@@ -38,7 +38,8 @@ MAP = "/world/map"
 
 def slam(repo: Path, *args: str) -> None:
     """Run the ``slam`` command of the checkout ``repo``."""
-    code = "import sys; from slam.cli import main; sys.argv[0] = 'slam'; sys.exit(main())"
+    code = ("import sys\ntry:\n    from slam.app.cli import main\nexcept ImportError:\n    from slam.cli import main\n"
+            "sys.argv[0] = 'slam'\nsys.exit(main())")       # (older checkouts kept it in slam.cli)
     env = {**os.environ, "PYTHONPATH": str(repo), "OMP_NUM_THREADS": "1"}
     res = subprocess.run([sys.executable, "-c", code, *args], cwd=repo, env=env, capture_output=True, text=True)
     if res.returncode != 0:

@@ -122,8 +122,8 @@ def run_one(job: dict) -> dict:
 
     torch.set_num_threads(1)
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
     from slam.synth import generate
 
     data = Path(job["data"])

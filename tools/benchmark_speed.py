@@ -37,7 +37,7 @@ def main() -> None:
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    slam = [sys.executable, "-m", "slam.cli"]
+    slam = [sys.executable, "-m", "slam"]
     rows = []
     for size in args.sizes:
         data = out / f"data_{args.scenario}_{size}_{args.frames}"

@@ -36,8 +36,8 @@ def run_one(job: dict) -> dict:
 
     torch.set_num_threads(1)
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     cfg = load_config(None, [f"tracking.mode={job['mode']}", "logging.progress=false", "threads=1", *job["extra"]])
     m = Pipeline(cfg, open_dataset(Path(job["data"]), cfg.data), Path(job["out"])).run(progress=False).metrics
@@ -57,7 +57,7 @@ def main() -> None:
     ap.add_argument("--out", default="runs/video_input")
     ap.add_argument("--set", action="append", default=[])
     args = ap.parse_args()
-    from slam.cli import parse_size
+    from slam.app.cli import parse_size
     from slam.synth import generate
 
     out = Path(args.out)

@@ -31,10 +31,10 @@ def run_one(job: dict) -> dict:
     import torch
 
     from slam.config import load_config
-    from slam.runner import run_from_config
+    from slam.app.runner import run_from_config
     from slam.synth import generate
     from slam.synth.appearance import random_appearance
-    from slam.tracking_csv import read_tracking_csv
+    from slam.app.tracking_csv import read_tracking_csv
 
     torch.set_num_threads(1)
     data = Path(job["data"])

@@ -27,6 +27,9 @@ ROOT = Path(__file__).resolve().parents[1]
 #: metrics.json keys that measure the machine, not the result
 VOLATILE = ("fps", "timings_ms", "peak_rss_mb", "provenance", "data")
 FILES = ("trajectory.txt", "tracking.csv", "metrics.json", "map.ply")
+#: the ``slam`` command of whichever checkout is on PYTHONPATH (older ones kept it in slam.cli)
+SLAM_MAIN = ("import sys\ntry:\n    from slam.app.cli import main\nexcept ImportError:\n    from slam.cli import main\n"
+             "sys.argv[0] = 'slam'\nsys.exit(main())")
 
 
 @dataclass
@@ -74,7 +77,7 @@ def render(out: Path) -> dict[str, Path]:
     for seq in SEQUENCES.values():
         path = out / "data" / seq.name
         if not (path / "groundtruth.txt").is_file():
-            subprocess.run([sys.executable, "-m", "slam.cli", "synth", str(path), *seq.synth, "--quiet"],
+            subprocess.run([sys.executable, "-c", SLAM_MAIN, "synth", str(path), *seq.synth, "--quiet"],
                            check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
             for k in seq.unreadable:
                 (path / "video_frames" / f"{k:06d}l.png").write_bytes(b"not a png")
@@ -85,7 +88,7 @@ def render(out: Path) -> dict[str, Path]:
 def run(tree: Path, data: Path, out: Path, args: list) -> tuple[int, str]:
     shutil.rmtree(out, ignore_errors=True)
     env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "-m", "slam.cli", "run", str(data), "--out", str(out), "--quiet",
+    proc = subprocess.run([sys.executable, "-c", SLAM_MAIN, "run", str(data), "--out", str(out), "--quiet",
                            "--set", "threads=1", *args], capture_output=True, text=True, cwd=tree, env=env)
     return proc.returncode, (proc.stderr.strip().splitlines() or [""])[-1]
 

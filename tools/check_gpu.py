@@ -33,9 +33,9 @@ from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from slam.cli import parse_size  # noqa: E402
+from slam.app.cli import parse_size  # noqa: E402
 from slam.config import load_config  # noqa: E402
-from slam.runner import run_from_config  # noqa: E402
+from slam.app.runner import run_from_config  # noqa: E402
 from slam.synth import generate  # noqa: E402
 
 

@@ -33,7 +33,7 @@ propagated. The dense SLAM is retried with voxels x2 and x4 after a crash; if al
 read "crash". A tracking failure (an exception from ``track_frame_to_model``, ``success = False``
 from ``compute_rgbd_odometry``) keeps the previous pose and is counted in "failed".
 
-Metrics (``slam.evaluation.evaluate``, as ``slam run``): ATE-RMSE (mm, SE(3)-aligned; first-pose
+Metrics (``slam.evaluation.metrics.evaluate``, as ``slam run``): ATE-RMSE (mm, SE(3)-aligned; first-pose
 aligned on static-camera sequences), RPE-trans (mm) and RPE-rot (deg) between consecutive frames.
 Every trajectory starts at the first ground-truth pose. "fps" is the tracking throughput without
 our stereo depth and without reading frames: Open3D odometry = building Open3D's images + the
@@ -211,8 +211,8 @@ def run_method(method: str, seq: dict, overrides: list[str], ours_overrides: lis
 
 def finish_row(row: dict, result: dict, seq: dict, out: Path) -> dict:
     """Metrics of a finished run; writes its trajectory (TUM) unless our pipeline already did."""
-    from slam.evaluation import evaluate
-    from slam.tum import write_tum
+    from slam.evaluation.metrics import evaluate
+    from slam.io.tum import write_tum
 
     est = np.asarray(result["poses"], dtype=np.float64)
     n = int(result["frames"])

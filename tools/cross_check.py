@@ -13,7 +13,7 @@ the squared Mahalanobis distance ``d2``: the share of frames flagged on the sequ
 per-frame error stays under 1 mm and on the others, the recall of frames with an error above 0.5,
 1 and 2 mm, and the mean error of the pose the frame would keep (the smaller ``sigma_t``, the
 model view's or the last frame's) against always the model view's. Writes ``cross_check.md``
-and ``.json``. With ``--closed-loop LIMIT`` the runs use the cross-check (``slam.cross_check``:
+and ``.json``. With ``--closed-loop LIMIT`` the runs use the cross-check (``slam.tracking.cross_check``:
 combining, flagging, not fusing flagged frames, rebuilding) and the table gives each sequence's
 ATE and flags against the run without the cross-check and flags (``health.cross_check=0``,
 ``health.flag_mm=1e9``).
@@ -48,9 +48,9 @@ def run_open_loop(job: dict) -> dict:
     import torch
 
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.health import relative_error
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.tracking.health import relative_error
+    from slam.app.pipeline import Pipeline
 
     torch.set_num_threads(1)
     data = sequence(job)
@@ -90,7 +90,7 @@ def run_closed_loop(job: dict) -> dict:
     import torch
 
     from slam.config import load_config
-    from slam.runner import run_from_config
+    from slam.app.runner import run_from_config
 
     torch.set_num_threads(1)
     data = sequence(job)

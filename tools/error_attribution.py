@@ -62,7 +62,7 @@ def pose_error_mm(est: np.ndarray, gt: np.ndarray) -> float:
 def attribute_sequence(data: Path, step: int, overrides: list[str]) -> dict:
     """Per-pair errors of every variant on one sequence (see the module doc)."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
+    from slam.io.datasets import open_dataset
     from vo.health import weighted_median
     from vo.odometry import Correspondences, StereoOdometry
 

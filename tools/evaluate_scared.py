@@ -24,7 +24,7 @@ if str(REPO) not in sys.path:  # running from a checkout without an installed pa
     sys.path.insert(0, str(REPO))
 
 from slam.batch.protocols import PAPER_KEYFRAMES, SCARED_DATASETS  # noqa: E402
-from slam.cli import OneLineParser, main as slam_main, parse_size  # noqa: E402
+from slam.app.cli import OneLineParser, main as slam_main, parse_size  # noqa: E402
 from slam.errors import SlamError  # noqa: E402
 
 

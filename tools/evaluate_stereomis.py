@@ -25,7 +25,7 @@ if str(REPO) not in sys.path:  # running from a checkout without an installed pa
 
 from slam.batch.protocols import STEREOMIS_COLUMNS  # noqa: E402
 from slam.batch.tasks import SynthTask  # noqa: E402
-from slam.cli import OneLineParser, main as slam_main, parse_size  # noqa: E402
+from slam.app.cli import OneLineParser, main as slam_main, parse_size  # noqa: E402
 from slam.errors import ConfigError, SlamError  # noqa: E402
 
 # seeds disjoint from training (1000+), the baseline comparison (7001+) and the scenario benchmark (9001+)

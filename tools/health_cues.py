@@ -6,7 +6,7 @@ relative pose error.
 Each RUN is a ``slam run`` output folder of a sequence with ground truth (its ``config.yaml``
 names the data). Per frame the error is the translation of ``log(est_rel gt_rel^-1)``, the
 frame's motion from its reference frame against the ground truth's. Prints per figure of
-``slam.health.FIGURES`` the Spearman rank correlation with the error over all frames, and the
+``slam.tracking.health.FIGURES`` the Spearman rank correlation with the error over all frames, and the
 area under the ROC curve (AUC: 0.5 is chance, 1 separates perfectly) for telling frames whose
 error exceeds ``--bad-mm`` (default: the 90th percentile of all errors) from the others. Writes
 ``health_cues.md`` and ``.json``.
@@ -25,10 +25,10 @@ def frame_errors(run: Path) -> tuple[dict, np.ndarray]:
     """The run's tracking.csv columns and each frame's relative translation error (mm, nan where
     there is no reference or ground truth)."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.health import relative_error
-    from slam.tracking_csv import read_tracking_csv
-    from slam.tum import read_tum
+    from slam.io.datasets import open_dataset
+    from slam.tracking.health import relative_error
+    from slam.app.tracking_csv import read_tracking_csv
+    from slam.io.tum import read_tum
 
     rows = read_tracking_csv(run / "tracking.csv")
     cfg = load_config(run / "config.yaml", [])
@@ -60,7 +60,7 @@ def auc(scores: np.ndarray, bad: np.ndarray) -> float:
 
 
 def main() -> None:
-    from slam.health import FIGURES
+    from slam.tracking.health import FIGURES
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+", type=Path)

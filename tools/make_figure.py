@@ -49,7 +49,7 @@ def map_panel(ax, points: np.ndarray, colours: np.ndarray, poses: np.ndarray) ->
 def trajectory_panel(ax, est: np.ndarray, gt: np.ndarray | None) -> str:
     """The estimated camera centres against the ground truth (aligned as ATE aligns them), in the
     plane of their two largest spreads; returns a caption with the ATE."""
-    from slam import evaluation as ev
+    from slam.evaluation import metrics as ev
 
     caption = ""
     if gt is not None:
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from slam.tum import read_tum
+    from slam.io.tum import read_tum
 
     ply, traj = args.run / "map.ply", args.run / "trajectory.txt"
     for path in (ply, traj):

@@ -30,10 +30,10 @@ import torch
 def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: list[float],
                  rest_scales: list[float] = ()) -> list[dict]:
     from slam.config import load_config
-    from slam.datasets import open_dataset
+    from slam.io.datasets import open_dataset
     from slam.errors import SlamError
-    from slam.frame_view import frame_view
-    from slam.training import relative_rect_transform
+    from slam.app.frame_view import frame_view
+    from slam.training.trainer import relative_rect_transform
     from vo.geometry import change_along_flow
     from vo.odometry import StereoOdometry
 

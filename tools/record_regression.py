@@ -46,8 +46,8 @@ def run(name: str, root: Path) -> dict:
     """Run ``name`` of :data:`RUNS` on one torch thread: ``poses`` ``(N, 4, 4)`` mm (left camera to
     world) and ``ate_rmse_mm``."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.pipeline import Pipeline
+    from slam.io.datasets import open_dataset
+    from slam.app.pipeline import Pipeline
 
     scenario, overrides = RUNS[name]
     data = sequence(root, scenario)

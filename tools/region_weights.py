@@ -49,8 +49,8 @@ def region_ratio(nonrigid: np.ndarray, tissue: np.ndarray, keep: float, threshol
 
 def read_sequence(data: Path) -> tuple[np.ndarray, np.ndarray]:
     """``nonrigid`` (mm) and ``tissue`` stacks ``(T, H, W)`` of a synthetic sequence folder."""
-    from slam.datasets.dataset import read_scaled_uint
-    from slam.datasets.stereomis import read_depth_scale
+    from slam.io.datasets.dataset import read_scaled_uint
+    from slam.io.datasets.stereomis import read_depth_scale
 
     files = sorted((data / "nonrigid").glob("*l.png"))
     if not files:

@@ -24,8 +24,8 @@ import torch
 def sequence_noise(data: Path, overrides: list[str], start: int, frames: int) -> dict:
     """The statistics of one sequence over frames ``start .. start + frames - 1`` (see module doc)."""
     from slam.config import load_config
-    from slam.datasets import open_dataset
-    from slam.frame_view import frame_view
+    from slam.io.datasets import open_dataset
+    from slam.app.frame_view import frame_view
     from vo.odometry import StereoOdometry
 
     cfg = load_config(None, ["logging.progress=false", *overrides])

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from slam.training import TrainConfig, collate, load_train_config, training_data
+from slam.training.trainer import TrainConfig, collate, load_train_config, training_data
 from vo.ddn import declarative_pose
 from vo.lie import se3_exp
 from vo.residuals import PoseProblem

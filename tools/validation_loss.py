@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from slam.errors import SlamError
-from slam.training import by_scenario, evaluate_loss, load_train_config, training_data
+from slam.training.trainer import by_scenario, evaluate_loss, load_train_config, training_data
 from vo.weights import load_weight_networks
 
 

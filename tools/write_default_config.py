@@ -11,7 +11,7 @@ from slam.config import SlamConfig, to_dict
 HEADER = """# The built-in defaults, in full (tests/test_config.py checks this file equals them;
 # regenerate with `.venv/bin/python tools/write_default_config.py`).
 # Every key is documented in the dataclass that holds it:
-#   data -> slam/datasets/config.py, correspondence/depth/solver/weights -> vo/config.py,
+#   data -> slam/io/datasets/config.py, correspondence/depth/solver/weights -> vo/config.py,
 #   tracking/logging -> slam/config.py, map -> mapping/config.py.
 # Copy a section into your own config to change it; unknown or mistyped keys are an error.
 """

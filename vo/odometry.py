@@ -14,7 +14,7 @@ frame2model) in the paper's steps:
 6. check: a pose that is not finite, implausibly large or supported by too few pixels fails.
 
 The per-sequence state (which reference, when to filter, the last motion) belongs to the caller
-(``slam.tracker.Tracker``).
+(``slam.tracking.tracker.Tracker``).
 """
 from __future__ import annotations
 

@@ -142,7 +142,7 @@ def estimated_cost(entry: protocols.Entry, config: SlamConfig, cache: dict) -> f
     opened: it fails fast)."""
     key = (str(entry.path), entry.frames, config.data.width, config.data.height, config.data.layout)
     if key not in cache:
-        from slam.datasets import open_dataset
+        from slam.io.datasets import open_dataset
 
         try:
             dataset = open_dataset(entry.path, config.data)
@@ -171,7 +171,7 @@ def build_tasks(req: EvaluateRequest, out: Path) -> tuple[list[RunTask], list[di
     base = load_config(config_path, overrides)
     sweeps = parse_sweeps(req.sweeps)
     if req.frames:
-        from slam.datasets.selection import parse_frames
+        from slam.io.datasets.selection import parse_frames
 
         try:
             parse_frames(req.frames, 10**6)

@@ -101,7 +101,7 @@ def map_accuracy(ply: Path, T_wc0: np.ndarray, calib_path: Path, gt_z: np.ndarra
     keyframe (see the module docstring). ``T_wc0``: the keyframe's left camera pose (mm)."""
     import open3d as o3d
 
-    from slam.calibration import read_scared_yaml
+    from slam.io.calibration import read_scared_yaml
 
     h, w = gt_z.shape
     calib = read_scared_yaml(calib_path, image_size=(w, h))

@@ -71,7 +71,7 @@ class Entry:
 # folder
 def folder_entries(root: Path, frames: Optional[str], exclude: tuple = ()) -> tuple[list[Entry], list[str]]:
     """The sequences of a folder (see the module docstring) and notes on sub-folders skipped."""
-    from slam.datasets import detect_layout
+    from slam.io.datasets import detect_layout
 
     if not root.is_dir():
         raise DataError(f"{root}: no such folder")

@@ -3,7 +3,7 @@
 * :class:`RunTask`: one sequence (or clip) tracked in one mode with one resolved configuration,
   into its own run folder (the usual ``slam run`` files, ``run.log`` among them).
   It is done when the folder's ``metrics.json`` has no ``interrupted`` key and records the
-  provenance (``slam.provenance``: configuration digest, package version, checkpoint digests,
+  provenance (``slam.app.provenance``: configuration digest, package version, checkpoint digests,
   frame selection) this task would record.
 * :class:`SynthTask`: one synthetic sequence rendered by ``slam.synth.generate``; done when its
   ``synth.json`` holds the same parameters and generator version.
@@ -83,7 +83,7 @@ class RunTask:
         return f"{self.sweep + ' ' if self.sweep else ''}{what} {self.mode}"
 
     def provenance(self) -> dict:
-        from slam.provenance import provenance
+        from slam.app.provenance import provenance
 
         return provenance(self.config, self.frames)
 

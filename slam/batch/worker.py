@@ -74,7 +74,7 @@ def _throttled(report: Report, every_s: float = 1.0) -> Callable[[int], None]:
 def check_sequence(task: RunTask) -> None:
     """The protocol's demands on the sequence, before the run: the frames it names exist and it
     has ground-truth poses (DataError naming the sequence otherwise)."""
-    from slam.datasets import open_dataset
+    from slam.io.datasets import open_dataset
 
     dataset = open_dataset(Path(task.data), task.config.data)
     try:
@@ -103,7 +103,7 @@ def run_task(task: RunTask, report: Report) -> dict:
     import cv2
 
     from slam.batch.map_accuracy import keyframe_map_accuracy
-    from slam.runner import exit_status, run_from_config
+    from slam.app.runner import exit_status, run_from_config
 
     out = Path(task.out_dir)
     out.mkdir(parents=True, exist_ok=True)

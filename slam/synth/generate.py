@@ -14,8 +14,8 @@ from slam.synth.instrument import InstrumentMotion
 from slam.synth.render import Renderer
 from slam.synth.scene import make_scene
 from slam.synth.writer import DEPTH_SCALE_MM, SequenceWriter, prepare_out_dir, write_calibration, write_metadata
-from slam.progress import Progress
-from slam.tum import write_tum
+from slam.app.progress import Progress
+from slam.io.tum import write_tum
 
 VERSION = "1.0.0"
 SCENARIOS = ("rigid", "breathing", "scanning", "deforming", "loop")

@@ -2,7 +2,7 @@
 
 :func:`write_scared_keyframe` converts a synthetic sequence written by :func:`slam.synth.generate`
 (StereoMIS pre-processed layout, rectified, with ``depth/``) into the layout
-:class:`slam.datasets.scared.ScaredDataset` reads, plus the keyframe's ground-truth geometry::
+:class:`slam.io.datasets.scared.ScaredDataset` reads, plus the keyframe's ground-truth geometry::
 
     <keyframe>/
       endoscope_calibration.yaml     OpenCV FileStorage: M1 D1 M2 D2 R T (mm, X_r = R X_l + T),
@@ -15,7 +15,7 @@
                                      frame; 0 where there is no surface (as SCARED ships it)
       Left_Image.png Right_Image.png the keyframe's views (frame 0), as in SCARED
 
-``camera-pose`` is written in the convention the reader assumes (see ``slam/datasets/scared.py``):
+``camera-pose`` is written in the convention the reader assumes (see ``slam/io/datasets/scared.py``):
 the world-to-camera transform of the left camera at frame i, world = the keyframe's (frame 0's) left
 camera, translation in mm: ``camera-pose_i = inv(T_wc_i) @ T_wc_0`` with the generator's
 ``T_wc``. The reader's ``T_wc = inv(camera-pose)`` is then ``inv(T_wc_0) @ T_wc_i``.
@@ -117,10 +117,10 @@ def write_scared_keyframe(src: str | Path, out: str | Path, fps: float = 25.0) -
     Returns:
         ``out`` as a Path.
     """
-    from slam.calibration import read_stereomis_ini
-    from slam.datasets.dataset import read_rgb, read_scaled_uint
-    from slam.datasets.stereomis import list_stereo_pngs, read_depth_scale
-    from slam.tum import read_tum
+    from slam.io.calibration import read_stereomis_ini
+    from slam.io.datasets.dataset import read_rgb, read_scaled_uint
+    from slam.io.datasets.stereomis import list_stereo_pngs, read_depth_scale
+    from slam.io.tum import read_tum
 
     src, out = Path(src), Path(out)
     pairs = list_stereo_pngs(src / "video_frames")

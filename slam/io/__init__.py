@@ -1,0 +1,1 @@
+"""Reading what users have: calibrations, rectification, TUM trajectories and the dataset readers."""

@@ -1,0 +1,1 @@
+"""Training the weight networks end to end through the pose optimum (DDN)."""
