@@ -125,6 +125,224 @@ def test_associate_matches_evo():
 
 
 # ------------------------------------------------------------------------------------------
+# figures recorded from the implementation before it went through evo (commit f633b9a)
+# ------------------------------------------------------------------------------------------
+def reference_cases() -> dict:
+    """Name -> (gt, est) of the cases whose figures are recorded in RECORDED below."""
+    cases = {}
+    for seed in (100, 101, 102, 103):
+        rng = np.random.default_rng(seed)
+        gt = smooth_gt(rng, n=90)
+        cases[f"random{seed}"] = (gt, rigid(rng) @ noisy(rng, gt))
+    rng = np.random.default_rng(110)  # static: jitter well below 1 mm, 'auto' picks 'first'
+    gt = np.tile(rigid(rng), (70, 1, 1))
+    gt[:, :3, 3] += rng.normal(size=(70, 3)) * 0.05
+    cases["static"] = (gt, rigid(rng) @ noisy(rng, gt, trans_mm=0.2, rot_deg=0.1))
+    rng = np.random.default_rng(111)
+    gt = smooth_gt(rng, n=50)
+    cases["two_poses"] = (gt[[0, 49]], noisy(rng, gt)[[0, 49]])
+    cases["identical"] = (gt, gt.copy())
+    cases["frozen"] = (gt, np.tile(rigid(rng), (50, 1, 1)))  # coincident estimated positions
+    line = noisy(rng, gt)
+    line[:, :3, 3] = np.outer(np.linspace(0.0, 30.0, 50), [0.6, 0.0, 0.8])  # collinear
+    cases["straight"] = (gt, line)
+    axis = noisy(rng, gt)
+    axis[:, :3, 3] = 0.0
+    axis[:, 0, 3] = np.linspace(0.0, 30.0, 50)  # exactly on an axis: covariance of rank 1 exactly
+    cases["on_axis"] = (gt, axis)
+    return cases
+
+
+def reference_stamps() -> dict:
+    """Name -> (gt_stamps, est_stamps, max_diff) of the association cases in RECORDED_ASSOCIATION."""
+    rng = np.random.default_rng(120)
+    gt = np.cumsum(rng.uniform(0.02, 0.05, size=200))
+    est = np.sort(rng.choice(gt, 150, replace=False) + rng.uniform(-0.015, 0.015, 150))
+    ties = np.arange(10.0)  # frame indices: every estimate stamp halfway between two
+    return {
+        "shorter_estimate": (gt, est, 0.01),
+        "longer_estimate": (est, gt, 0.01),
+        "unsorted": (gt[rng.permutation(len(gt))], est, 0.01),
+        "ties": (ties, ties[:-1] + 0.5, 0.5),
+        "default_tolerance": (gt, est, None),
+    }
+
+
+def reference_files(tmp_path) -> tuple:
+    """Two TUM files: frames missing and jittered stamps in the estimate."""
+    rng = np.random.default_rng(130)
+    n = 120
+    gt = smooth_gt(rng, n)
+    est = rigid(rng) @ noisy(rng, gt)
+    stamps = 500.0 + np.arange(n) / 30.0
+    keep = np.sort(rng.choice(n, size=n - 15, replace=False))
+    write_tum(tmp_path / "gt.txt", stamps, gt)
+    write_tum(tmp_path / "est.txt", stamps[keep] + rng.uniform(-0.004, 0.004, len(keep)), est[keep])
+    return tmp_path / "gt.txt", tmp_path / "est.txt"
+
+
+RECORDED = {
+    'random100': {
+        'auto': 'se3', 'static': False,
+        'se3': (2.125493785904007, 2.3515392073106516, 0.9055480833696409, 1.056309479219626, 0.4908573395202999),
+        'first': (3.854129368801871, 2.351539207310653, 0.9055480833696412, 1.0563094792196264, 0.49085733952029975),
+        'none': (96.18261576296162, 2.3515392073106516, 0.9055480833696402, 1.0563094792196264, 0.4908573395202998),
+        'rpe3': (2.4695298424560113, 0.9016378703690933, 1.0014053042282665, 0.4343874370727217),
+    },
+    'random101': {
+        'auto': 'se3', 'static': False,
+        'se3': (2.6994603783514424, 2.4511924274050694, 1.0292591291796496, 1.1533865992275296, 0.4773030084746755),
+        'first': (3.924335926148317, 2.45119242740507, 1.0292591291796496, 1.1533865992275296, 0.4773030084746753),
+        'none': (122.62809587916725, 2.451192427405069, 1.0292591291796507, 1.1533865992275294, 0.4773030084746753),
+        'rpe3': (2.579058165345415, 1.1804961834566339, 1.116837566930036, 0.5116817501538685),
+    },
+    'random102': {
+        'auto': 'se3', 'static': False,
+        'se3': (2.8327892201455924, 2.3411325923881914, 0.9019512530151068, 1.068667181511892, 0.46411830758580236),
+        'first': (5.424542309661852, 2.34113259238819, 0.9019512530151061, 1.068667181511892, 0.4641183075858027),
+        'none': (162.7161397917059, 2.341132592388189, 0.9019512530151068, 1.068667181511892, 0.46411830758580264),
+        'rpe3': (2.4587955729020363, 1.0517809174612698, 1.0442802194278324, 0.5156441740059039),
+    },
+    'random103': {
+        'auto': 'se3', 'static': False,
+        'se3': (2.6598751960330724, 2.4596249693665677, 0.8569349752467607, 1.0869522846011332, 0.4319338055659742),
+        'first': (4.908118805486537, 2.459624969366566, 0.8569349752467591, 1.0869522846011324, 0.4319338055659744),
+        'none': (138.61280754120318, 2.459624969366567, 0.8569349752467592, 1.0869522846011328, 0.4319338055659744),
+        'rpe3': (2.4288214367073153, 0.9889752592818889, 1.128379437698588, 0.46316585885645944),
+    },
+    'static': {
+        'auto': 'first', 'static': True,
+        'se3': (0.45902400944090466, 0.4559155548379036, 0.20849396588495306, 0.2513349430568082, 0.10295049263363931),
+        'first': (0.6909249593452759, 0.455915554837905, 0.20849396588495414, 0.2513349430568081, 0.10295049263363891),
+        'none': (29.18425992897927, 0.45591555483790386, 0.20849396588495203, 0.25133494305680826, 0.10295049263363887),
+        'rpe3': (0.48623674353424323, 0.23823326082782414, 0.2472929757972337, 0.11602113980650854),
+    },
+    'two_poses': {
+        'auto': 'se3', 'static': False,
+        'se3': (2.404289402213031, 6.260405418087568, 0.0, 1.3681300300377432, 0.0),
+        'first': (4.426775124106711, 6.260405418087545, 0.0, 1.368130030037747, 0.0),
+        'none': (4.495545743238836, 6.260405418087549, 0.0, 1.3681300300377428, 0.0),
+    },
+    'identical': {
+        'auto': 'se3', 'static': False,
+        'se3': (1.9639722923389327e-14, 9.186005573286602e-15, 4.6633887088521684e-15, 1.6541772445107677e-15, 7.942642604141234e-16),
+        'first': (9.061297269471504e-15, 6.093318742040637e-15, 3.391071143871002e-15, 1.4275738770443034e-15, 7.035576672288135e-16),
+        'none': (0.0, 3.2111952687542575e-16, 5.008990543474807e-16, 0.0, 0.0),
+        'rpe3': (7.884318198314588e-16, 9.78349822124399e-16, 0.0, 0.0),
+    },
+    'frozen': {
+        'auto': 'se3', 'static': False,
+        'se3': (45.54884248605229, 8.95904831672702, 2.689656888051234, 3.2195385607816527, 1.08520555511335),
+        'first': (55.79157024773744, 8.95904831672702, 2.689656888051234, 3.219538560781653, 1.0852055551133502),
+        'none': (96.43215981274999, 8.95904831672702, 2.689656888051234, 3.2195385607816527, 1.08520555511335),
+        'rpe3': (26.453305099463016, 7.86084856178441, 9.429262715412607, 2.967912610156167),
+    },
+    'straight': {
+        'auto': 'se3', 'static': False,
+        'se3': (42.11289104785088, 9.049861099015613, 2.6129316416956914, 1.092789454719828, 0.5264442303415057),
+        'first': (60.304821789770635, 9.049861099015613, 2.612931641695692, 1.0927894547198282, 0.5264442303415059),
+        'none': (51.370456641047156, 9.049861099015613, 2.6129316416956914, 1.0927894547198285, 0.5264442303415061),
+        'rpe3': (26.711187989452025, 7.637522168709951, 1.1723441034704218, 0.45059471860724787),
+    },
+    'on_axis': {
+        'auto': 'se3', 'static': False,
+        'se3': (42.11289104785088, 9.102316781709918, 2.4879665550221075, 1.1224486576912451, 0.4200451113506907),
+        'first': (63.66191701300672, 9.102316781709918, 2.4879665550221066, 1.1224486576912454, 0.42004511135069067),
+        'none': (50.65784692525229, 9.102316781709918, 2.4879665550221075, 1.1224486576912454, 0.42004511135069067),
+        'rpe3': (26.86133142235267, 7.258894497898767, 1.0607654892834844, 0.36545862964736553),
+    },
+}
+RECORDED_ALIGNED_LAST = {
+    ('random100', 'se3'): [[0.643336596734, 0.144723385447, -0.751779997744, -32.472894677021], [-0.376260480656, 0.914962507272, -0.145848075009, 7.840445060512], [0.666742884476, 0.376694507515, 0.643082556138, 30.153564468307]],
+    ('random100', 'first'): [[0.672819516761, 0.156129737064, -0.723144109476, -29.005924760504], [-0.377622500284, 0.913027033093, -0.154217003344, 8.183954671508], [0.636172260591, 0.376835696352, 0.673260508874, 30.735628255303]],
+    ('static', 'se3'): [[0.008229535224, 0.914840541506, -0.403731418604, 6.701462224083], [-0.790366547878, -0.241383281916, -0.563076221489, 61.563644435853], [-0.612578970211, 0.32372966319, 0.721072888428, -1.209981411304]],
+    ('static', 'first'): [[-0.800291665201, 0.470914169786, -0.371177983323, 6.647777931999], [-0.568610247372, -0.792494365633, 0.220533596132, 62.026604598636], [-0.190304065098, 0.387546803798, 0.901993258108, -0.582277301863]],
+}
+RECORDED_ASSOCIATION = {  # name: (max_diff used, matches, sum gt idx, sum est idx, sum gt idx * est idx)
+    'shorter_estimate': (0.01, 101, 10511, 7783, 1071851),
+    'longer_estimate': (0.01, 101, 7783, 10511, 1071851),
+    'unsorted': (0.01, 101, 9741, 7783, 743640),
+    'ties': (0.5, 9, 36, 36, 204),
+    'default_tolerance': (0.015968546232729808, 150, 15080, 11175, 1506663),
+}
+RECORDED_FILES = (3.0096987467966945, 2.4104774694850266, 1.0173487274294817, 1.081222757295247, 0.36636926223892785, 'se3', 105)
+
+
+def assert_as_recorded(new, old, what: str) -> None:
+    """Equal to 1e-9, relative below 1 and absolute above (the stricter of the two), and within
+    1e-12 where the recorded figure is rounding noise around zero."""
+    new, old = np.asarray(new, dtype=np.float64), np.asarray(old, dtype=np.float64)
+    tol = 1e-9 * np.minimum(1.0, np.abs(old)) + 1e-12
+    assert np.all(np.abs(new - old) <= tol), f"{what}: {new.tolist()} != recorded {old.tolist()}"
+
+
+@pytest.mark.parametrize("name", sorted(RECORDED))
+def test_figures_as_recorded_before_evo(name):
+    gt, est = reference_cases()[name]
+    rec = RECORDED[name]
+    assert ev.is_static(gt) is rec["static"]
+    auto = ev.evaluate(gt, est)
+    assert auto["alignment"] == rec["auto"] and auto["frames"] == len(gt)
+    assert_as_recorded([auto[k] for k in ev.METRIC_KEYS[:5]], rec[rec["auto"]], f"{name} auto")
+    for method in ("se3", "first", "none"):
+        m = ev.evaluate(gt, est, method)
+        assert m["alignment"] == method
+        assert_as_recorded([m[k] for k in ev.METRIC_KEYS[:5]], rec[method], f"{name} {method}")
+    if "rpe3" in rec:
+        r = ev.rpe(gt, est, delta=3)
+        assert_as_recorded([r["trans_mean"], r["trans_std"], r["rot_mean"], r["rot_std"]], rec["rpe3"],
+                           f"{name} rpe delta 3")
+
+
+@pytest.mark.parametrize("name", ["frozen", "on_axis"])
+def test_cases_evo_refuses_to_align(name):
+    """These recorded figures cover the fallback for a covariance of rank < 2."""
+    from evo.core.geometry import GeometryException, umeyama_alignment
+
+    gt, est = reference_cases()[name]
+    with pytest.raises(GeometryException):
+        umeyama_alignment(est[:, :3, 3].T, gt[:, :3, 3].T)
+
+
+@pytest.mark.parametrize("key", sorted(RECORDED_ALIGNED_LAST))
+def test_aligned_poses_as_recorded_before_evo(key):
+    name, method = key
+    gt, est = reference_cases()[name]
+    aligned, used = ev.align(gt, est, method)
+    assert used == method and aligned.shape == est.shape
+    np.testing.assert_allclose(aligned[-1][:3], RECORDED_ALIGNED_LAST[key], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(aligned[:, 3], np.tile([0.0, 0.0, 0.0, 1.0], (len(est), 1)))
+
+
+@pytest.mark.parametrize("name", sorted(RECORDED_ASSOCIATION))
+def test_association_as_recorded_before_evo(name):
+    gt_stamps, est_stamps, max_diff = reference_stamps()[name]
+    if max_diff is None:
+        max_diff = ev.default_max_diff(gt_stamps)
+    gi, ei = ev.associate(gt_stamps, est_stamps, max_diff)
+    assert gi.dtype.kind == ei.dtype.kind == "i"
+    assert (max_diff, len(gi), int(gi.sum()), int(ei.sum()), int((gi * ei).sum())) == RECORDED_ASSOCIATION[name]
+
+
+def test_files_as_recorded_before_evo(tmp_path):
+    m = ev.evaluate_files(*reference_files(tmp_path))
+    assert_as_recorded([m[k] for k in ev.METRIC_KEYS[:5]], RECORDED_FILES[:5], "files")
+    assert (m["alignment"], m["frames"]) == RECORDED_FILES[5:]
+
+
+def test_importing_the_metrics_does_not_import_evo():
+    """evo (and pandas behind it) load only when metrics are computed, not with a run."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = "import sys, slam.evaluation.metrics; print('evo' in sys.modules, 'pandas' in sys.modules)"
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root).stdout
+    assert out.split() == ["False", "False"]
+
+
+# ------------------------------------------------------------------------------------------
 # properties
 # ------------------------------------------------------------------------------------------
 def test_umeyama_recovers_rigid_transform():
