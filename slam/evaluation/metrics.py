@@ -32,8 +32,8 @@ Alignment
   rotation fitted to such a point cloud would only fit noise.
 
 Association (:func:`associate`) pairs each pose of the shorter trajectory with the
-nearest-in-time pose of the other one when the time difference is ``<= max_diff``, exactly
-as ``evo.core.sync.associate_trajectories`` (nearest-time method) does.
+nearest-in-time pose of the other one when the time difference is ``<= max_diff``: evo's
+``matching_time_indices`` as ``evo.core.sync.associate_trajectories`` calls it.
 """
 from __future__ import annotations
 
@@ -267,35 +267,19 @@ def evaluate(gt, est, align_method: str = "auto") -> dict:
 # --------------------------------------------------------------------------------------------
 # files
 # --------------------------------------------------------------------------------------------
-def _nearest(short: np.ndarray, long: np.ndarray, max_diff: float) -> tuple[np.ndarray, np.ndarray]:
-    """For each stamp of ``short``, the nearest stamp of ``long`` within ``max_diff`` (ties: the
-    earlier one), like ``evo.core.sync.matching_time_indices``."""
-    if len(long) > 1 and np.any(np.diff(long) < 0):
-        d = np.abs(long[None, :] - short[:, None])
-        best = np.argmin(d, axis=1)
-        ok = d[np.arange(len(short)), best] <= max_diff
-        return np.flatnonzero(ok), best[ok]
-    k = np.searchsorted(long, short, side="right")
-    hi = np.minimum(k, len(long) - 1)
-    lo = np.maximum(k - 1, 0)
-    d_hi = np.abs(long[hi] - short)
-    d_lo = np.where(k > 0, np.abs(short - long[lo]), np.inf)
-    best = np.where(d_lo <= d_hi, lo, hi)
-    d = np.minimum(d_lo, d_hi)
-    ok = d <= max_diff
-    return np.flatnonzero(ok), best[ok]
-
-
 def associate(gt_stamps, est_stamps, max_diff: float = DEFAULT_MAX_DIFF) -> tuple[np.ndarray, np.ndarray]:
     """Pair poses by nearest timestamps (TUM / evo style).
 
     Every stamp of the shorter sequence is matched to the nearest stamp of the longer one if
-    they differ by at most ``max_diff`` (same unit as the stamps); unmatched poses are dropped.
-    Same rule as ``evo.core.sync.associate_trajectories`` (nearest-time method).
+    they differ by at most ``max_diff`` (same unit as the stamps; ties: the earlier stamp);
+    unmatched poses are dropped. evo's ``matching_time_indices`` in the order
+    ``evo.core.sync.associate_trajectories`` calls it.
 
     Returns:
         ``(gt_idx, est_idx)`` int arrays of equal length.
     """
+    from evo.core.sync import matching_time_indices
+
     g = np.asarray(gt_stamps, dtype=np.float64).ravel()
     e = np.asarray(est_stamps, dtype=np.float64).ravel()
     if not (np.all(np.isfinite(g)) and np.all(np.isfinite(e))):
@@ -303,10 +287,10 @@ def associate(gt_stamps, est_stamps, max_diff: float = DEFAULT_MAX_DIFF) -> tupl
     if len(g) == 0 or len(e) == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     if len(e) > len(g):  # evo starts from the shorter trajectory (ties: the first one)
-        gi, ei = _nearest(g, e, max_diff)
+        gi, ei = matching_time_indices(g, e, max_diff)
     else:
-        ei, gi = _nearest(e, g, max_diff)
-    return gi.astype(int), ei.astype(int)
+        ei, gi = matching_time_indices(e, g, max_diff)
+    return np.asarray(gi, dtype=int), np.asarray(ei, dtype=int)
 
 
 def default_max_diff(gt_stamps) -> float:
