@@ -1,45 +1,31 @@
-"""Trajectory metrics: ATE-RMSE and RPE, computed like the paper (after Ozyoruk et al. 2021)
-and numerically identical to ``evo`` (``evo_ape`` / ``evo_rpe`` with the settings below).
+"""Trajectory metrics as in the paper (after Ozyoruk et al. 2021), computed by evo's Python API
+(``evo_ape`` / ``evo_rpe`` with the settings below). evo is imported inside the functions that
+use it: importing this module, and so a run, does not load it until metrics are computed.
 
-Conventions
------------
 * Poses are ``(N, 4, 4)`` float64 camera-to-world matrices ``T_wc`` in **millimetres**
-  (OpenCV camera axes). TUM files are in metres; :func:`slam.io.tum.read_tum` converts.
-* **ATE-RMSE** (mm): root mean square of the position errors ``||t_gt,i - t_est,i||`` after
-  aligning the estimate to the ground truth (see *Alignment*). Equals ``evo_ape tum GT EST -a``
-  (``PoseRelation.translation_part``, RMSE statistic).
-* **RPE** between frames ``i`` and ``i + delta`` (``delta = 1`` in the paper)::
-
-      E_i = inv(inv(G_i) G_{i+delta}) @ (inv(P_i) P_{i+delta})
-
-  ``rpe_trans`` = ``||translation(E_i)||`` (mm), ``rpe_rot`` = rotation angle of ``E_i``
-  (degrees, the norm of its rotation vector); mean and population std (``ddof=0``) over the
-  pairs. The pairs are ``(0, d), (d, 2d), ...`` as in evo with ``all_pairs=False`` (for
-  ``delta = 1``: every consecutive pair). RPE does not depend on a rigid alignment of the
-  estimate (it cancels in ``inv(P_i) P_j``).
-
-Alignment
----------
-* ``"se3"``: rigid Horn/Umeyama least-squares fit (rotation + translation, *no scale*) of the
-  estimated positions onto the ground-truth positions; the estimate is left-multiplied by the
-  fitted transform (exactly evo's ``traj_est.align(traj_ref, correct_scale=False)``).
-* ``"first"``: the estimate is left-multiplied by ``G_0 inv(P_0)`` so its first pose equals the
-  ground truth's first pose (evo's ``align_origin``).
-* ``"none"``: used as given.
-* ``"auto"``: ``"first"`` for static-camera sequences, else ``"se3"``. A sequence is *static*
-  when ``max_i ||g_i - mean(g)|| < spread_mm`` (1 mm by default), ``g_i`` the ground-truth
-  positions: the largest distance of any ground-truth position from their centroid. A free
-  rotation fitted to such a point cloud would only fit noise.
-
-Association (:func:`associate`) pairs each pose of the shorter trajectory with the
-nearest-in-time pose of the other one when the time difference is ``<= max_diff``: evo's
-``matching_time_indices`` as ``evo.core.sync.associate_trajectories`` calls it.
+  (:func:`slam.io.tum.read_tum` converts TUM metres). evo calls lengths metres but never
+  converts them here: the figures stay in mm.
+* **ATE-RMSE** (mm): RMS of the position errors ``||t_gt,i - t_est,i||`` after alignment
+  (evo's ``APE``, ``PoseRelation.translation_part``, RMSE).
+* **RPE** between frames ``i`` and ``i + delta``: ``E_i = inv(inv(G_i) G_{i+delta}) inv(P_i)
+  P_{i+delta}``; ``rpe_trans = ||translation(E_i)||`` (mm), ``rpe_rot`` its rotation angle
+  (degrees, ``PoseRelation.rotation_angle_deg``); mean and population std over the pairs
+  ``(0, d), (d, 2d), ...`` (evo's ``RPE`` in frames, ``all_pairs=False``; the paper's
+  ``delta = 1``: every consecutive pair). A rigid alignment of the estimate cancels in it.
+* **Alignment** (left-multiplying the estimate): ``"se3"`` the rigid Umeyama fit of the
+  positions, no scale (evo's ``align(ref, correct_scale=False)``; where evo refuses a
+  covariance of rank < 2, as it can for two poses or a frozen or straight-line estimate,
+  scipy's Kabsch fit picks one of the equally good rotations: the ATE is the same for all);
+  ``"first"`` makes the first poses equal (evo's ``align_origin``); ``"none"``; ``"auto"``:
+  ``"first"`` on static sequences (:func:`is_static`: no ground-truth position farther than
+  1 mm from their centroid, where a fitted rotation would only fit noise), else ``"se3"``.
+* **Association** (:func:`associate`): each pose of the shorter trajectory with the
+  nearest-in-time pose of the other within ``max_diff`` (evo's ``matching_time_indices`` as
+  ``associate_trajectories`` calls it).
 """
 from __future__ import annotations
 
-
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from slam.errors import DataError
 from slam.io.tum import read_tum
@@ -91,76 +77,22 @@ def _check_pair(gt, est, min_len: int = 2) -> tuple[np.ndarray, np.ndarray]:
     return gt, est
 
 
-def _check_points(xyz, name: str) -> np.ndarray:
-    arr = np.asarray(xyz, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise EvaluationError(f"{name}: expected an (N, 3) array of points, got shape {arr.shape}")
-    if len(arr) < 2:
-        raise EvaluationError(f"{name}: need at least 2 points, got {len(arr)}")
-    if not np.all(np.isfinite(arr)):
-        raise EvaluationError(f"{name}: non-finite values (NaN/inf) in points")
-    return arr
+def _path(poses: np.ndarray):
+    """Checked poses as an evo ``PosePath3D`` (evo never changes the matrices it is given)."""
+    from evo.core.trajectory import PosePath3D
 
-
-def _inv_se3(T: np.ndarray) -> np.ndarray:
-    """Inverse of one ``(4,4)`` or a stack ``(N,4,4)`` of rigid transforms."""
-    R = T[..., :3, :3]
-    t = T[..., :3, 3]
-    Rt = np.swapaxes(R, -1, -2)
-    out = np.zeros_like(T)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
-    out[..., 3, 3] = 1.0
-    return out
+    return PosePath3D(poses_se3=list(poses))
 
 
 # --------------------------------------------------------------------------------------------
 # alignment
 # --------------------------------------------------------------------------------------------
-def umeyama_alignment(src_xyz, dst_xyz, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-    """Least-squares similarity (or rigid) transform mapping ``src`` points onto ``dst``.
-
-    Minimises ``sum_i ||dst_i - (s R src_i + t)||^2`` (Umeyama 1991, Horn 1987).
-
-    Args:
-        src_xyz, dst_xyz: ``(N, 3)`` corresponding points (N >= 2).
-        with_scale: also estimate the scale ``s`` (else ``s = 1``).
-
-    Returns:
-        ``R (3, 3)`` proper rotation, ``t (3,)``, ``s`` float.
-        For degenerate inputs (collinear or coincident points) the rotation about the
-        undetermined axes is arbitrary but still a least-squares minimiser.
-    """
-    src = _check_points(src_xyz, "source points")
-    dst = _check_points(dst_xyz, "destination points")
-    if src.shape != dst.shape:
-        raise EvaluationError(f"point sets differ in shape: {src.shape} vs {dst.shape}")
-    n = len(src)
-    mu_s = src.mean(axis=0)
-    mu_d = dst.mean(axis=0)
-    xs = src - mu_s
-    xd = dst - mu_d
-    cov = xd.T @ xs / n  # (3, 3) cross-covariance, Umeyama eq. 38
-    U, D, Vt = np.linalg.svd(cov)
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
-        S[2, 2] = -1.0  # keep a right-handed rotation (no reflection)
-    R = U @ S @ Vt
-    s = 1.0
-    if with_scale:
-        var_s = float(np.sum(xs**2)) / n
-        if var_s > 0.0:
-            s = float(np.trace(np.diag(D) @ S) / var_s)
-    t = mu_d - s * (R @ mu_s)
-    return R, t, s
-
-
 def align_first_pose(gt, est) -> np.ndarray:
     """Transform ``est`` rigidly (left-multiplication) so that its first pose equals ``gt[0]``."""
     gt = _check_poses(gt, "ground truth", 1)
-    est = _check_poses(est, "estimate", 1)
-    T = gt[0] @ _inv_se3(est[0])
-    return T @ est
+    path = _path(_check_poses(est, "estimate", 1))
+    path.align_origin(_path(gt[:1]))
+    return np.array(path.poses_se3)
 
 
 def is_static(gt_poses, spread_mm: float = 1.0) -> bool:
@@ -173,6 +105,26 @@ def is_static(gt_poses, spread_mm: float = 1.0) -> bool:
     p = gt[:, :3, 3]
     spread = float(np.max(np.linalg.norm(p - p.mean(axis=0), axis=1)))
     return spread < spread_mm
+
+
+def _align_se3(gt: np.ndarray, est: np.ndarray) -> np.ndarray:
+    from evo.core.geometry import GeometryException
+    from evo.core.lie_algebra import se3
+
+    path = _path(est)
+    try:
+        path.align(_path(gt), correct_scale=False)
+    except GeometryException:  # rank < 2: any rotation fitting the determined axes will do
+        import warnings
+
+        from scipy.spatial.transform import Rotation
+
+        src, dst = est[:, :3, 3], gt[:, :3, 3]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "not uniquely defined": known
+            R = Rotation.align_vectors(dst - dst.mean(axis=0), src - src.mean(axis=0))[0].as_matrix()
+        path.transform(se3(R, dst.mean(axis=0) - R @ src.mean(axis=0)))
+    return np.array(path.poses_se3)
 
 
 def align(gt, est, method: str = "auto") -> tuple[np.ndarray, str]:
@@ -194,27 +146,32 @@ def align(gt, est, method: str = "auto") -> tuple[np.ndarray, str]:
         return est.copy(), "none"
     if method == "first":
         return align_first_pose(gt, est), "first"
-    R, t, _ = umeyama_alignment(est[:, :3, 3], gt[:, :3, 3], with_scale=False)
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = t
-    return T @ est, "se3"
+    return _align_se3(gt, est), "se3"
 
 
 # --------------------------------------------------------------------------------------------
 # metrics
 # --------------------------------------------------------------------------------------------
+def _ape(gt: np.ndarray, est: np.ndarray):
+    from evo.core.metrics import APE, PoseRelation
+
+    ape = APE(PoseRelation.translation_part)
+    ape.process_data((_path(gt), _path(est)))
+    return ape
+
+
 def per_frame_translation_error(gt, est_aligned) -> np.ndarray:
     """``(N,)`` position errors ``||t_gt,i - t_est,i||`` (mm) of an already aligned estimate."""
     gt, est = _check_pair(gt, est_aligned, min_len=1)
-    return np.linalg.norm(gt[:, :3, 3] - est[:, :3, 3], axis=1)
+    return _ape(gt, est).error
 
 
 def ate_rmse(gt, est) -> float:
     """ATE-RMSE (mm) of an already aligned estimate: ``sqrt(mean_i ||t_gt,i - t_est,i||^2)``."""
+    from evo.core.metrics import StatisticsType
+
     gt, est = _check_pair(gt, est)
-    err = per_frame_translation_error(gt, est)
-    return float(np.sqrt(np.mean(err**2)))
+    return float(_ape(gt, est).get_statistic(StatisticsType.rmse))
 
 
 def rpe(gt, est, delta: int = 1) -> dict:
@@ -223,25 +180,26 @@ def rpe(gt, est, delta: int = 1) -> dict:
     Returns:
         ``dict(trans_mean, trans_std, rot_mean, rot_std)`` in mm and degrees (std: ``ddof=0``).
     """
+    from evo import EvoException
+    from evo.core.metrics import RPE, PoseRelation, StatisticsType, Unit
+
     gt, est = _check_pair(gt, est)
     if int(delta) != delta or delta < 1:
         raise EvaluationError(f"delta must be a positive integer number of frames, got {delta}")
     delta = int(delta)
-    ids = np.arange(0, len(gt), delta)
-    if len(ids) < 2:
+    if delta >= len(gt):
         raise EvaluationError(f"delta = {delta} frames leaves no pose pair in {len(gt)} poses")
-    i, j = ids[:-1], ids[1:]
-    gt_rel = _inv_se3(gt[i]) @ gt[j]
-    est_rel = _inv_se3(est[i]) @ est[j]
-    E = _inv_se3(gt_rel) @ est_rel
-    trans = np.linalg.norm(E[:, :3, 3], axis=1)
-    rot = np.degrees(Rotation.from_matrix(E[:, :3, :3]).magnitude())
-    return {
-        "trans_mean": float(np.mean(trans)),
-        "trans_std": float(np.std(trans)),
-        "rot_mean": float(np.mean(rot)),
-        "rot_std": float(np.std(rot)),
-    }
+    ref, path = _path(gt), _path(est)
+    out = {}
+    for relation, key in ((PoseRelation.translation_part, "trans"), (PoseRelation.rotation_angle_deg, "rot")):
+        metric = RPE(relation, delta=delta, delta_unit=Unit.frames, all_pairs=False)
+        try:
+            metric.process_data((ref, path))
+        except EvoException as exc:  # e.g. a rotation part that is no rotation
+            raise EvaluationError(f"relative pose error: {exc}") from None
+        out[f"{key}_mean"] = float(metric.get_statistic(StatisticsType.mean))
+        out[f"{key}_std"] = float(metric.get_statistic(StatisticsType.std))
+    return out
 
 
 def evaluate(gt, est, align_method: str = "auto") -> dict:
