@@ -5,7 +5,14 @@ Units are millimetres and pixels throughout; defaults suit a stereo endoscope ob
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+def fixed(why: str, default):
+    """A field a person does not set: the application's configuration refuses it (its analysis
+    tools may change it); the map reads it like any other."""
+    return field(default=default, metadata={"fixed": why})
 
 
 class MapConfigError(ValueError):
@@ -39,18 +46,13 @@ class MapConfig:
             ``torch``.
     """
 
-    # input range
-    min_depth_mm: float = 20.0
-    max_depth_mm: float = 200.0
-
-    # confidence and removal
     stable_confidence: float = 3.0
-    max_confidence: float = 100.0
     unstable_window: int = 20
-    free_space_mm: float = 3.0
-
-    # implementation
-    kernels: str = "auto"
+    min_depth_mm: float = fixed("the map's input range (the tracker's is depth.min/max_depth_mm)", 20.0)
+    max_depth_mm: float = fixed("the map's input range (the tracker's is depth.min/max_depth_mm)", 200.0)
+    max_confidence: float = fixed("ElasticFusion's clamp of a surfel's confidence", 100.0)
+    free_space_mm: float = fixed("the free-space margin, with mapping.fusion.FREE_SPACE_REL", 3.0)
+    kernels: Literal["auto", "compiled", "torch"] = fixed("an analysis switch (analysis.map_kernels)", "auto")
 
     def __post_init__(self) -> None:
         self.validate()
@@ -59,39 +61,11 @@ class MapConfig:
         """Raise :class:`MapConfigError` on a value out of range."""
         def need(cond: bool, msg: str) -> None:
             if not cond:
-                raise MapConfigError(f"mapping: {msg}")
+                raise MapConfigError(f"map: {msg}")
 
         need(0 < self.min_depth_mm < self.max_depth_mm, "need 0 < min_depth_mm < max_depth_mm")
-        need(self.stable_confidence > 0, "stable_confidence must be > 0")
-        need(self.max_confidence >= self.stable_confidence, "max_confidence must be >= stable_confidence")
-        need(self.unstable_window >= 1, "unstable_window must be >= 1")
+        need(self.stable_confidence > 0, "map.stable_confidence must be > 0")
+        need(self.max_confidence >= self.stable_confidence, "map.stable_confidence must be <= max_confidence (100)")
+        need(self.unstable_window >= 1, "map.unstable_window must be >= 1")
         need(self.free_space_mm > 0, "free_space_mm must be > 0")
         need(self.kernels in ("auto", "compiled", "torch"), "kernels must be 'auto', 'compiled' or 'torch'")
-
-    @classmethod
-    def from_dict(cls, values: dict | None) -> "MapConfig":
-        """Build from a plain mapping (e.g. a YAML section); unknown keys raise MapConfigError."""
-        values = dict(values or {})
-        known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(values) - set(known))
-        if unknown:
-            raise MapConfigError(f"mapping: unknown key(s) {', '.join(unknown)}")
-        out = {}
-        for k, v in values.items():
-            typ = type(getattr(cls, k))
-            if typ is str:
-                out[k] = str(v)
-                continue
-            if typ is bool:
-                if not isinstance(v, bool):
-                    raise MapConfigError(f"mapping: {k} must be true or false, got {v!r}")
-                out[k] = v
-                continue
-            try:
-                fv = float(v)
-                if typ is int and fv != int(fv):
-                    raise ValueError
-                out[k] = int(fv) if typ is int else fv
-            except (TypeError, ValueError):
-                raise MapConfigError(f"mapping: {k} must be a {typ.__name__}, got {v!r}") from None
-        return cls(**out)

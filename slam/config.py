@@ -1,25 +1,32 @@
-"""The application's configuration: typed dataclasses per concern, loaded from YAML, validated,
-overridden with ``--set a.b=value``, and saved with every run.
+"""The application's configuration: one schema of typed dataclasses (``slam.schema``), loaded
+from YAML, overridden with ``--set a.b=value``, checked, and saved with every run.
 
-An unknown or mistyped key is a one-line ``ConfigError`` naming it (with a suggestion).
+``configs/default.yaml`` lists every key a person may set, each documented once, in the class
+that holds it. An unknown or mistyped key is a one-line ``ConfigError`` naming it (with a
+suggestion); a key that was removed names what replaces it (:data:`REMOVED`). The ``analysis``
+section holds the switches the analysis tools set (exact depth, known poses, the
+forward-backward check, ...): not in ``default.yaml``, not for tracking.
 """
 from __future__ import annotations
 
 import copy
-import dataclasses
-import difflib
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Literal, Optional
 
 import yaml
 
 from mapping.config import MapConfig
-from slam.io.datasets.config import DataConfig
 from slam.errors import ConfigError
-from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
+from slam.io.datasets.config import DataConfig
+from slam.schema import parse_into, rebuild, user_dict
+from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, VOConfig, WeightsConfig, fixed, need
+
+#: frame2model: below this fraction of the last frame's valid pixels covered by the model view the
+#: previous frame is the reference for that step (the start, fast motion). A partly covered view is
+#: filled with the last frame's pixels, which sit at the true last pose while the render sits at the
+#: estimated one: the seam between them pulls the flow, so the bar is high.
+MIN_MODEL_COVERAGE = 0.95
 
 
 @dataclass
@@ -28,14 +35,8 @@ class TrackingConfig:
 
     Attributes:
         mode: ``frame2frame`` (reference = previous frame) or ``frame2model`` (reference = the
-            surfel map rendered at the last pose).
-        flow_reference: in frame2model, the image the temporal flow is computed against:
-            ``rendered`` (the model's colour relit to the last frame's shading, as the paper:
-            the flow then ties the new frame to the map itself, which holds the pose to the
-            surface seen before) or ``last_frame`` (the last real frame, at the reference pose;
-            less noisy per frame, but it hands each frame's pose error on to the next: only
-            the depth comes from the map; 0.554 against 0.242 mm on the rigid and loop
-            sequences of ``tools/benchmark_frame2model.py``).
+            surfel map rendered at the last pose, its colour relit to the last frame's shading, as
+            the paper: the flow then ties the new frame to the map itself).
         refine_passes: frame2model: after tracking against the model view at the last pose,
             render the model at the new estimate and track the frame against that view again,
             this many times (ElasticFusion re-associates at each iteration's pose). The view is
@@ -43,56 +44,34 @@ class TrackingConfig:
             disocclusions. Each pass costs a colour render, a flow, the weights and a solve
             (one pass: frame2model ATE -13 % at 0.7x the fps on the synthetic rigid and loop
             sequences; two passes tracked worse than one; docs/experiments.md).
-        min_model_coverage: below this fraction of the last frame's valid pixels covered by the
-            model view, the previous frame is the reference for that step (the start, fast
-            motion). A partly covered view is filled with the last frame's pixels, which sit at
-            the true last pose while the render sits at the estimated one: the seam between them
-            pulls the flow, so the bar is high.
-        fuse_weight: per-pixel fusion weight: ``w3d`` (the learned 3D weight over its per-frame
-            median, clamped to 1; pixels the tracker could not weigh count fully, see
-            ``slam.app.pipeline.normalised_fusion_weight``; uniform without learned weights) or
-            ``uniform`` (every valid pixel counts fully: better on rigid scenes, worse where tissue
-            deforms; docs/experiments.md).
-        export_map: fuse a map in frame2frame too (without tracking against it) and export it.
-        poses: ``estimated`` (track) or ``groundtruth``: take the dataset's ground-truth poses
-            and fuse the map with them (mapping on its own, e.g. to measure the map's accuracy
-            apart from tracking); needs ground truth, implies ``export_map``. With learned
-            weights each frame is still matched to the previous one, for its w3D fusion weight.
-        read_ahead: make the next frame's view (stereo depth) in a read-ahead thread while the
-            current frame is tracked, and its temporal flow against the frame before it wherever
-            tracking will flow against the previous frame (both depend on the frames alone;
-            OpenCV and torch release the GIL, so on two cores the two threads overlap). Same
-            results either way. With a backend whose temporal and stereo flow are one model
-            (RAFT) the view is made in the main thread. The per-stage ``stereo`` and
-            ``flow_ahead`` times are then spent in the thread and ``read`` is what the main
-            thread waited for.
         keyframe_gap: frame2frame: a tracked frame becomes the reference (keyframe) of the
             frames after it once it is this many frames after the current keyframe; the frames
             in between are tracked against the keyframe, not against the frame before them. 1
             is the paper's: every frame against the previous one (``configs/paper.yaml``). With
-            the default 5 (while the camera is still, ``keyframe_still_mm``) a static camera's
-            pose is chained a fifth as often (the per-frame noise adds up five times slower) and
-            the reference stands further from the current frame (the tissue's motion in between
-            rises above the depth noise); the networks are trained on pairs 1-5 frames apart.
-            The depth filter (``depth.temporal_gain``) still runs from each frame to the one
-            before it. A failed frame makes the last tracked frame the keyframe
-            (docs/experiments.md).
-        keyframe_still_mm: > 0: keep a keyframe only while the camera is still, i.e. while the
-            last tracked motion moved it less than this (mm per frame, as
-            ``depth.temporal_still_mm``): a moving camera's frames are each tracked against the
-            one before it, the paper's reference. 0: the gap applies to every frame.
+            the default 5, while the camera is still (``keyframe_still_mm``, 0.1 mm per frame at
+            25 fps), a static camera's pose is chained a fifth as often and the reference stands
+            further from the current frame (the tissue's motion in between rises above the depth
+            noise); a moving camera's frames are each tracked against the one before it. The
+            networks are trained on pairs 1-5 frames apart. The depth filter
+            (``depth.temporal_gain``) still runs from each frame to the one before it. A failed
+            frame makes the last tracked frame the keyframe (docs/experiments.md).
+        keyframe_still_mm: (fixed) keep a keyframe only while the last tracked motion moved the
+            camera less than this (mm per frame at 25 fps; 0: the gap applies to every frame).
+        min_model_coverage: (fixed) :data:`MIN_MODEL_COVERAGE`.
     """
 
-    mode: str = "frame2frame"
-    flow_reference: str = "rendered"
+    mode: Literal["frame2frame", "frame2model"] = "frame2frame"
     refine_passes: int = 0
-    min_model_coverage: float = 0.95
-    fuse_weight: str = "w3d"
-    export_map: bool = False
-    poses: str = "estimated"
-    read_ahead: bool = True
     keyframe_gap: int = 5
-    keyframe_still_mm: float = 0.1
+    keyframe_still_mm: float = fixed("a constant scaled by the frame rate (at_frame_rate)", 0.1)
+    min_model_coverage: float = fixed("the model view's coverage below which the last frame is the reference",
+                                      MIN_MODEL_COVERAGE)
+
+    def __post_init__(self):
+        need(0 <= self.refine_passes <= 5, "tracking.refine_passes must be in 0..5")
+        need(self.keyframe_gap >= 1, "tracking.keyframe_gap must be >= 1 (1 = every frame against the previous one)")
+        need(self.keyframe_still_mm >= 0, "tracking.keyframe_still_mm must be >= 0 (0 = keyframes for a moving camera too)")
+        need(0.0 <= self.min_model_coverage <= 1.0, "tracking.min_model_coverage must be in [0, 1]")
 
 
 @dataclass
@@ -100,15 +79,6 @@ class HealthConfig:
     """Tracking health.
 
     Attributes:
-        covariance_scale_frame: ``s`` of the pose covariance ``s * sigma^2 * H^-1`` against a
-            camera frame (the previous frame or a keyframe). The residuals of neighbouring
-            pixels are correlated (one flow field, one stereo match), so the textbook covariance
-            (``s = 1``) is overconfident. Fitted by ``tools/calibrate_covariance.py`` on
-            randomised validation sequences so that the NEES of the 6-dof relative pose averages 6
-            (6343 on 590 frames of rigid and scanning validation sequences at 320x256: median NEES
-            5.3, 93 % of frames inside the 95 % chi-square bound).
-        covariance_scale_model: the same against the model view (frame2model; fitted 774: median
-            NEES 3.3, 88 % inside the bound).
         cross_check: frame2model: each frame is also tracked against the last frame with its own
             flow (an estimate independent of the map) and the two are combined by their
             covariances (``slam.tracking.cross_check``: a filter on the pose relative to the map); where
@@ -119,12 +89,28 @@ class HealthConfig:
         flag_mm: a frame is also flagged where the two estimates' positions lie further apart
             than this (frame2model), and in both modes where the positional spread ``sigma_t`` of
             the pose it reports exceeds it (an uncertain pose). A flagged frame is not fused.
+        covariance_scale_frame: (fixed; ``analysis.covariance_scale_frame``) ``s`` of the pose
+            covariance ``s * sigma^2 * H^-1`` against a camera frame (the previous frame or a
+            keyframe). The residuals of neighbouring pixels are correlated (one flow field, one
+            stereo match), so the textbook covariance (``s = 1``) is overconfident. Fitted by
+            ``tools/calibrate_covariance.py`` on randomised validation sequences so that the NEES
+            of the 6-dof relative pose averages 6 (6343 on 590 frames of rigid and scanning
+            validation sequences at 320x256: median NEES 5.3, 93 % of frames inside the 95 %
+            chi-square bound).
+        covariance_scale_model: (fixed; ``analysis.covariance_scale_model``) the same against the
+            model view (frame2model; fitted 774: median NEES 3.3, 88 % inside the bound).
     """
 
-    covariance_scale_frame: float = 6300.0
-    covariance_scale_model: float = 770.0
     cross_check: float = 22.5
     flag_mm: float = 1.5
+    covariance_scale_frame: float = fixed("fitted by tools/calibrate_covariance.py (analysis.covariance_scale_frame)",
+                                          6300.0)
+    covariance_scale_model: float = fixed("fitted by tools/calibrate_covariance.py (analysis.covariance_scale_model)",
+                                          770.0)
+
+    def __post_init__(self):
+        need(self.cross_check >= 0, "health.cross_check must be >= 0 (0 = no cross-check)")
+        need(self.flag_mm > 0, "health.flag_mm must be > 0")
 
 
 @dataclass
@@ -152,28 +138,80 @@ class GraphConfig:
     keyframe_deg: float = 5.0
     inactive_after: int = 50
 
+    def __post_init__(self):
+        need(self.keyframe_mm > 0 and self.keyframe_deg > 0, "graph.keyframe_mm and keyframe_deg must be > 0")
+        need(self.inactive_after >= 1, "graph.inactive_after must be >= 1")
+
 
 @dataclass
 class LoggingConfig:
-    """Outputs besides the trajectory.
+    """The rerun recording and the map's exports besides the trajectory.
 
     Attributes:
-        rerun: path of a rerun recording (``.rrd``) to save; empty = none.
-        spawn: open the rerun viewer.
+        rerun: path of a rerun recording (``.rrd``) to save; empty = none (``slam run --rerun``;
+            ``--spawn`` opens the viewer).
         map_every: log the map to rerun every N frames (0 = only the final map).
         rerun_every: record the camera and its image views (image, depth, flow, weights, valid
             mask) of every N-th frame only (1 = every frame; each costs ~0.2 MB at 640x512); the
             trajectories and the metrics keep every frame, the map follows ``map_every``.
-        progress: show a progress bar.
-        mesh: also write a surface mesh of the map.
+        export_map: fuse a map in frame2frame too (without tracking against it) and write it
+            (``--export-map``; frame2model always writes its map).
+        mesh: also write a surface mesh of the map (``--mesh``).
     """
 
     rerun: str = ""
-    spawn: bool = False
     map_every: int = 10
     rerun_every: int = 1
-    progress: bool = True
+    export_map: bool = False
     mesh: bool = False
+
+    def __post_init__(self):
+        need(self.map_every >= 0, "logging.map_every must be >= 0 (0 = only the final map)")
+        need(self.rerun_every >= 1, "logging.rerun_every must be >= 1 (1 = every frame)")
+
+
+@dataclass
+class AnalysisConfig:
+    """Switches for the analysis tools (``tools/``), not for tracking: each replaces an input or
+    a constant to measure what it costs. Not in ``configs/default.yaml``; empty values keep the
+    default. A run records them in its ``config.yaml``.
+
+    Attributes:
+        depth_source: ``stereo``, or ``groundtruth``: the synthetic generator's exact depth
+            instead of the stereo depth (``tools/error_attribution.py``).
+        poses: ``estimated``, or ``groundtruth``: no tracking; the map is fused at the dataset's
+            ground-truth poses (the map's accuracy apart from tracking; with learned weights each
+            frame is still matched to the previous one for its w3D fusion weight).
+        fb_check_px: > 0: drop temporal flows whose forward-backward round trip misses by more
+            (pixels; costs a second temporal flow).
+        round_trip: compute each tracked pair's flow back for the ``round_trip_px`` figure of
+            ``tracking.csv`` (it ranks wrong poses less well than the cost and ``sigma_t_mm``:
+            docs/experiments.md).
+        inpaint_px, match_exposure: the highlights' inpainting radius and the exposure matching
+            before DIS (``correspondence``; 0 / false: the recipe of ``weights_3d.pt``).
+        solver_kernel, map_kernels: ``compiled`` (numba) or ``torch`` normal equations and map
+            passes (``tools/check_gpu.py`` runs the code a GPU runs on the CPU).
+        covariance_scale_frame, covariance_scale_model: the pose covariance's scales
+            (``health``; ``tools/calibrate_covariance.py``).
+    """
+
+    depth_source: Literal["stereo", "groundtruth"] = "stereo"
+    poses: Literal["estimated", "groundtruth"] = "estimated"
+    fb_check_px: Optional[float] = None
+    round_trip: Optional[bool] = None
+    inpaint_px: Optional[float] = None
+    match_exposure: Optional[bool] = None
+    solver_kernel: Optional[Literal["auto", "compiled", "torch"]] = None
+    map_kernels: Optional[Literal["auto", "compiled", "torch"]] = None
+    covariance_scale_frame: Optional[float] = None
+    covariance_scale_model: Optional[float] = None
+
+    #: where each switch lands: (section, field)
+    TARGETS = {"fb_check_px": ("correspondence", "fb_check_px"), "round_trip": ("correspondence", "round_trip"),
+               "inpaint_px": ("correspondence", "inpaint_px"), "match_exposure": ("correspondence", "dis_match_exposure"),
+               "solver_kernel": ("solver", "kernel"), "map_kernels": ("map", "kernels"),
+               "covariance_scale_frame": ("health", "covariance_scale_frame"),
+               "covariance_scale_model": ("health", "covariance_scale_model")}
 
 
 @dataclass
@@ -201,123 +239,74 @@ class SlamConfig:
     map: MapConfig = field(default_factory=MapConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
+    analysis: AnalysisConfig = field(default_factory=AnalysisConfig)
 
-    def vo(self):
+    def __post_init__(self):
+        need(self.threads >= 0, "threads must be >= 0 (0 = every core but the read-ahead thread's)")
+
+    def vo(self) -> VOConfig:
         """The VO core's part of the configuration."""
-        from vo.odometry import VOConfig
-
         return VOConfig(correspondence=self.correspondence, depth=self.depth, solver=self.solver, weights=self.weights)
 
 
-# Allowed values of string options, checked at load time.
-CHOICES = {
-    "data.layout": ("auto", "stereomis", "stereomis_raw", "scared", "plain", "frames", "video"),
-    "data.stereo_layout": ("auto", "top-bottom", "side-by-side"),
-    "data.rectified": ("auto", "yes", "no"),
-    "data.rectify_mode": ("full", "pseudo"),
-    "correspondence.backend": ("dis", "raft"),
-    "correspondence.dis_preset": ("ultrafast", "fast", "medium"),
-    "correspondence.dis_stereo_preset": ("ultrafast", "fast", "medium"),
-    "correspondence.dis_lr_check_preset": ("ultrafast", "fast", "medium"),
-    "depth.source": ("stereo", "groundtruth"),
-    "solver.method": ("lm", "gauss_newton", "lbfgs"),
-    "solver.init": ("identity", "constant_velocity"),
-    "solver.kernel": ("auto", "compiled", "torch"),
-    "weights.mode": ("learned", "constant"),
-    "weights.residuals": ("2d3d", "2d", "3d"),
-    "tracking.mode": ("frame2frame", "frame2model"),
-    "tracking.flow_reference": ("last_frame", "rendered"),
-    "tracking.fuse_weight": ("w3d", "uniform"),
-    "tracking.poses": ("estimated", "groundtruth"),
+#: keys that are gone: what replaces them (or why they are gone)
+REMOVED = {
+    "tracking.flow_reference": "is gone: frame2model flows against the model's relit colour ('rendered'); "
+                               "the last frame lost (0.554 against 0.242 mm, docs/experiments.md)",
+    "tracking.fuse_weight": "is gone: fusion is weighed by the learned w3D where there is one ('uniform' lost on "
+                            "deforming tissue, docs/experiments.md)",
+    "tracking.read_ahead": "is gone: the next frame's view is always made ahead (the same results, faster)",
+    "tracking.export_map": "is now logging.export_map (the option --export-map)",
+    "logging.spawn": "is now the option --spawn",
+    "tracking.poses": "is now analysis.poses (mapping at known poses is an analysis)",
+    "tracking.min_model_coverage": "is gone: a constant (slam.config.MIN_MODEL_COVERAGE)",
+    "tracking.keyframe_still_mm": "is gone: a constant scaled by the frame rate (0.1 mm per frame at 25 fps)",
+    "depth.source": "is now analysis.depth_source",
+    "depth.temporal_gate_mm": "is gone: a constant scaled by the frame rate",
+    "depth.temporal_still_mm": "is gone: a constant scaled by the frame rate (0.1 mm per frame at 25 fps)",
+    "correspondence.fb_check_px": "is now analysis.fb_check_px",
+    "correspondence.round_trip": "is now analysis.round_trip",
+    "correspondence.inpaint_px": "is now analysis.inpaint_px",
+    "correspondence.dis_match_exposure": "is now analysis.match_exposure",
+    "correspondence.raft_iters": "is gone: RAFT runs the 12 iterations its checkpoints were trained with",
+    "correspondence.max_vertical_parallax_px": "is gone: a constant (2 px)",
+    "solver.kernel": "is now analysis.solver_kernel",
+    "solver.init": "is gone: the solver starts at the identity",
+    "solver.max_pixels": "is gone: a constant (16384 pixels)",
+    "solver.max_translation_mm": "is gone: a constant scaled by the frame rate (20 mm per frame at 25 fps)",
+    "solver.max_rotation_deg": "is gone: a constant (15 degrees)",
+    "solver.min_valid_pixels": "is gone: a constant (200 pixels)",
+    "map.kernels": "is now analysis.map_kernels",
+    "map.min_depth_mm": "is gone: a constant (20 mm)",
+    "map.max_depth_mm": "is gone: a constant (200 mm)",
+    "map.max_confidence": "is gone: a constant (100)",
+    "map.free_space_mm": "is gone: a constant (3 mm)",
+    "data.specular_threshold": "is gone: a constant (0.96)",
+    "data.specular_dilate_px": "is gone: a constant (3 px)",
+    "data.dark_threshold": "is gone: a constant (0.04)",
+    "health.covariance_scale_frame": "is now analysis.covariance_scale_frame",
+    "health.covariance_scale_model": "is now analysis.covariance_scale_model",
+    "logging.progress": "is now the option --quiet",
 }
 
 
-def _coerce(value: Any, typ: Any, key: str, source: str) -> Any:
-    """Check/convert ``value`` to the annotated type ``typ``."""
-    origin = typing.get_origin(typ)
-    if origin in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(typ) if a is not type(None)]
-        if value is None:
-            return None
-        return _coerce(value, args[0], key, source)
-    if typ is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.lower() in ("true", "yes", "on", "1", "false", "no", "off", "0"):
-            return value.lower() in ("true", "yes", "on", "1")
-        raise ConfigError(f"{source}: '{key}' must be true or false, got {value!r}")
-    if typ is int:
-        if isinstance(value, bool) or not isinstance(value, (int, str)):
-            raise ConfigError(f"{source}: '{key}' must be an integer, got {value!r}")
-        try:
-            return int(value)
-        except ValueError:
-            raise ConfigError(f"{source}: '{key}' must be an integer, got {value!r}") from None
-    if typ is float:
-        if isinstance(value, bool):
-            raise ConfigError(f"{source}: '{key}' must be a number, got {value!r}")
-        try:
-            return float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{source}: '{key}' must be a number, got {value!r}") from None
-    if typ is str:
-        if isinstance(value, (dict, list)):
-            raise ConfigError(f"{source}: '{key}' must be a string, got {value!r}")
-        if isinstance(value, bool) and "yes" in CHOICES.get(key, ()):
-            value = "yes" if value else "no"    # YAML reads an unquoted yes / no as a boolean
-        value = "" if value is None else str(value)
-        if key in CHOICES and value not in CHOICES[key]:
-            raise ConfigError(f"{source}: '{key}' must be one of {', '.join(CHOICES[key])}, got '{value}'")
-        return value
-    if origin in (list, tuple):
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{source}: '{key}' must be a list, got {value!r}")
-        (inner,) = typing.get_args(typ)[:1] or (Any,)
-        return [(_coerce(v, inner, key, source) if inner is not Any else v) for v in value]
-    return value
-
-
-def _merge(obj: Any, data: dict, prefix: str, source: str) -> None:
-    """Set the fields of dataclass ``obj`` from ``data`` (nested), validating keys and types."""
+def read_yaml(path: str | Path) -> dict:
+    """A YAML file's mapping; ConfigError naming the file (and the line) otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as err:
+        line = getattr(getattr(err, "problem_mark", None), "line", None)
+        raise ConfigError(f"{path}{f':{line + 1}' if line is not None else ''}: not valid YAML") from None
     if not isinstance(data, dict):
-        raise ConfigError(f"{source}: '{prefix.rstrip('.') or 'top level'}' must be a mapping, got {data!r}")
-    hints = typing.get_type_hints(type(obj))
-    names = [f.name for f in dataclasses.fields(obj)]
-    for key, value in data.items():
-        full = f"{prefix}{key}"
-        if key not in names:
-            close = difflib.get_close_matches(str(key), names, n=1)
-            hint = f" (did you mean '{prefix}{close[0]}'?)" if close else f" (known: {', '.join(names)})"
-            raise ConfigError(f"{source}: unknown key '{full}'{hint}")
-        current = getattr(obj, key)
-        if dataclasses.is_dataclass(current):
-            _merge(current, value, full + ".", source)
-        else:
-            setattr(obj, key, _coerce(value, hints[key], full, source))
+        raise ConfigError(f"{path}: expected a mapping of sections")
+    return data
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SlamConfig:
-    """Defaults, then the YAML file, then ``key=value`` overrides (values parsed as YAML scalars)."""
-    config = SlamConfig()
-    if path:
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"{path}: config file not found")
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as err:
-            line = getattr(getattr(err, "problem_mark", None), "line", None)
-            where = f":{line + 1}" if line is not None else ""
-            raise ConfigError(f"{path}{where}: not valid YAML") from None
-        _merge(config, data, "", str(path))
-    for item in overrides or []:
-        apply_override(config, item)
-    validate(config)
-    return config
-
-
-def apply_override(config: Any, item: str) -> None:
-    """Apply one ``a.b=value`` override to a configuration dataclass."""
+def override_tree(item: str) -> dict:
+    """``a.b=value`` as ``{"a": {"b": value}}`` (the value parsed as a YAML scalar)."""
     if "=" not in item:
         raise ConfigError(f"--set {item}: expected key=value")
     key, raw = item.split("=", 1)
@@ -325,43 +314,42 @@ def apply_override(config: Any, item: str) -> None:
         value = yaml.safe_load(raw) if raw.strip() else ""
     except yaml.YAMLError:
         value = raw
-    nested: dict = {}
-    cursor = nested
+    tree: dict = {}
+    cursor = tree
     parts = key.strip().split(".")
     for part in parts[:-1]:
         cursor = cursor.setdefault(part, {})
     cursor[parts[-1]] = value
-    _merge(config, nested, "", "--set")
+    return tree
 
 
-def validate(config: SlamConfig) -> None:
-    """Range checks that types alone do not catch."""
-    checks = [
-        (config.threads >= 0, "threads must be >= 0 (0 = every core but the read-ahead thread's)"),
-        (config.depth.max_depth_mm > config.depth.min_depth_mm > 0, "depth: need 0 < min_depth_mm < max_depth_mm"),
-        (config.solver.max_iters >= 1, "solver.max_iters must be >= 1"),
-        (config.solver.robust_3d_mm >= 0, "solver.robust_3d_mm must be >= 0 (0 = off)"),
-        (config.data.width >= 0 and config.data.height >= 0, "data.width/height must be >= 0"),
-        ((config.data.width == 0) == (config.data.height == 0), "data.width and data.height: set both or neither"),
-        (0.0 <= config.tracking.min_model_coverage <= 1.0, "tracking.min_model_coverage must be in [0, 1]"),
-        (0 <= config.tracking.refine_passes <= 5, "tracking.refine_passes must be in 0..5"),
-        (config.tracking.keyframe_gap >= 1, "tracking.keyframe_gap must be >= 1 (1 = every frame against the previous one)"),
-        (config.tracking.keyframe_still_mm >= 0, "tracking.keyframe_still_mm must be >= 0 (0 = keyframes for a moving camera too)"),
-        (config.weights.w2d >= 0 and config.weights.w3d >= 0, "weights.w2d/w3d must be >= 0"),
-        (0.0 < config.depth.temporal_gain <= 1.0, "depth.temporal_gain must be in (0, 1] (1 = off)"),
-        (config.depth.temporal_gate_mm > 0, "depth.temporal_gate_mm must be > 0"),
-        (config.graph.keyframe_mm > 0 and config.graph.keyframe_deg > 0, "graph.keyframe_mm and keyframe_deg must be > 0"),
-        (config.graph.inactive_after >= 1, "graph.inactive_after must be >= 1"),
-        (config.depth.temporal_still_mm >= 0, "depth.temporal_still_mm must be >= 0 (0 = filter every frame)"),
-        (config.logging.rerun_every >= 1, "logging.rerun_every must be >= 1 (1 = every frame)"),
-    ]
-    for ok, message in checks:
-        if not ok:
-            raise ConfigError(f"config: {message}")
-    try:
-        config.map.validate()
-    except ValueError as err:
-        raise ConfigError(f"config: {err}") from None
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> SlamConfig:
+    """Defaults, then the YAML file, then ``key=value`` overrides; checked, with the analysis
+    switches applied to the sections they replace a constant of."""
+    config = SlamConfig()
+    if path:
+        parse_into(config, read_yaml(path), str(path), REMOVED)
+    return with_overrides(config, overrides or [])
+
+
+def with_overrides(config: SlamConfig, overrides: list[str], source: str = "--set") -> SlamConfig:
+    """A copy of ``config`` with ``key=value`` overrides, checked (ConfigError naming ``source``)."""
+    config = copy.deepcopy(config)
+    for item in overrides:
+        parse_into(config, override_tree(item), source, REMOVED)
+    config = rebuild(config)
+    apply_analysis(config)
+    return config
+
+
+def apply_analysis(config) -> None:
+    """Copy the analysis switches that are set onto the constants they replace."""
+    for name, (section, key) in AnalysisConfig.TARGETS.items():
+        value = getattr(config.analysis, name)
+        if value is not None and hasattr(config, section):     # (a training config has no health)
+            setattr(getattr(config, section), key, value)
+
+
 
 
 #: the frame rate the per-frame motion thresholds of the configuration are given at
@@ -394,10 +382,17 @@ def at_frame_rate(config: SlamConfig, fps: float) -> SlamConfig:
     return out
 
 
-def to_dict(config: Any) -> dict:
-    return dataclasses.asdict(config)
+def default_tree() -> dict:
+    """What ``configs/default.yaml`` lists: every key a person may set, at its default."""
+    return user_dict(SlamConfig(), skip=("analysis",))
 
 
 def save_config(config: SlamConfig, path: str | Path) -> None:
-    """Write the resolved configuration as YAML."""
-    Path(path).write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
+    """Write the resolved configuration as YAML: what a person may set, and the analysis
+    switches where one is set (``slam run --config`` reads it back)."""
+    tree = user_dict(config, skip=("analysis",))
+    analysis = {k: v for k, v in user_dict(config.analysis).items()
+                if v is not None and v != getattr(AnalysisConfig(), k)}
+    if analysis:
+        tree["analysis"] = analysis
+    Path(path).write_text(yaml.safe_dump(tree, sort_keys=False))

@@ -32,7 +32,8 @@ def test_depth_cache_is_our_stereo_depth(rigid):
     import torch
 
     from slam.io.datasets import DataConfig, open_dataset
-    from vo.odometry import StereoOdometry, VOConfig
+    from vo.config import VOConfig
+    from vo.odometry import StereoOdometry
     from vo.config import WeightsConfig
 
     data, cache = rigid

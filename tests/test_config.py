@@ -4,18 +4,53 @@ from pathlib import Path
 import pytest
 import yaml
 
-from slam.config import SlamConfig, load_config, to_dict
+from slam.config import REMOVED, default_tree, load_config, save_config
 from slam.errors import ConfigError
+from slam.schema import count_keys
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_default_yaml_equals_builtin_defaults():
     # regenerate with tools/write_default_config.py after changing a default
-    assert yaml.safe_load((ROOT / "configs" / "default.yaml").read_text()) == to_dict(SlamConfig())
+    assert yaml.safe_load((ROOT / "configs" / "default.yaml").read_text()) == default_tree()
 
 
-@pytest.mark.parametrize("name", ["default", "stereomis_frame2frame", "scared_frame2model", "synthetic"])
+def test_at_most_45_keys_a_person_may_set():
+    assert count_keys(default_tree()) <= 45
+    assert "analysis" not in default_tree()
+
+
+@pytest.mark.parametrize("key", sorted(REMOVED))
+def test_a_removed_key_names_its_replacement(key):
+    with pytest.raises(ConfigError) as err:
+        load_config(None, [f"{key}=1"])
+    msg = str(err.value)
+    assert f"'{key}' {REMOVED[key]}" in msg and "\n" not in msg
+
+
+def test_a_fixed_constant_is_not_a_setting():
+    with pytest.raises(ConfigError, match="'solver.max_pixels' is gone"):
+        load_config(None, ["solver.max_pixels=10"])
+
+
+def test_analysis_switches_land_on_their_constants():
+    cfg = load_config(None, ["analysis.inpaint_px=0", "analysis.solver_kernel=torch", "analysis.map_kernels=torch",
+                             "analysis.covariance_scale_frame=1", "analysis.depth_source=groundtruth"])
+    assert cfg.correspondence.inpaint_px == 0.0 and cfg.solver.kernel == "torch" and cfg.map.kernels == "torch"
+    assert cfg.health.covariance_scale_frame == 1.0 and cfg.analysis.depth_source == "groundtruth"
+    assert load_config(None, []).correspondence.inpaint_px == 3.0
+
+
+def test_saved_config_reads_back(tmp_path):
+    cfg = load_config(ROOT / "configs" / "paper.yaml", ["analysis.fb_check_px=1", "tracking.refine_passes=1"])
+    save_config(cfg, tmp_path / "config.yaml")
+    again = load_config(tmp_path / "config.yaml")
+    assert again == cfg
+    assert yaml.safe_load((tmp_path / "config.yaml").read_text())["analysis"] == {"fb_check_px": 1.0}
+
+
+@pytest.mark.parametrize("name", ["default", "paper", "stereomis_frame2frame", "scared_frame2model", "synthetic"])
 def test_shipped_configs_load(name):
     load_config(ROOT / "configs" / f"{name}.yaml")
 

@@ -9,7 +9,7 @@ import torch
 
 from mapping import SurfelMap
 from mapping.config import MapConfig
-from slam.tracking.tracker import REBUILD_AFTER
+from slam.tracking.acceptance import REBUILD_AFTER
 
 
 def test_forget_view_removes_the_surfels_a_view_sees():
@@ -38,26 +38,25 @@ def _run(data, tmp_path, name, cross_check: float, corrupt: range | None = None,
     from slam.io.datasets import open_dataset
     from slam.app.pipeline import Pipeline
 
-    cfg = load_config(None, ["tracking.mode=frame2model", f"health.cross_check={cross_check}", "threads=1",
-                             "logging.progress=false"])
+    cfg = load_config(None, ["tracking.mode=frame2model", f"health.cross_check={cross_check}", "threads=1"])
     pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / name)
     odo, tracker = pipe.odometry, pipe.tracker
     flow, track = odo.correspondences, tracker.track
 
-    def corrupted(cur, against, round_trip=None):
-        corr = flow(cur, against, round_trip)
-        if corrupt is not None and against.from_model and tracker.position + 1 in corrupt:
+    def corrupted(cur, against, round_trip=None, ahead=None):
+        corr = flow(cur, against, round_trip, ahead)
+        if corrupt is not None and against.from_model and tracker.state.position + 1 in corrupt:
             shifted = corr.flow.clone()
             shifted[:, 0] += 4.0
             corr = corr._replace(flow=shifted)
         return corr
 
-    def shifting(position, view, gt_pose=None):
+    def shifting(position, view, ahead=None):
         if position == shift_map_at:
             st = tracker.map.store
             axis = torch.as_tensor(tracker.pose[:3, 2], dtype=st.pos.dtype)
             st.pos[: st.n] += 2.0 * axis
-        return track(position, view, gt_pose)
+        return track(position, view, ahead)
 
     odo.correspondences, tracker.track = corrupted, shifting
     res = pipe.run(progress=False)
@@ -160,7 +159,7 @@ def test_an_uncertain_pose_is_flagged_in_frame2frame(tmp_path):
     data = generate(tmp_path / "seq", "rigid", frames=6, size=(96, 80), seed=9602)
     runs = {}
     for name, bar in (("loose", 1.5), ("tight", 1e-4)):
-        cfg = load_config(None, ["tracking.mode=frame2frame", f"health.flag_mm={bar}", "threads=1", "logging.progress=false"])
+        cfg = load_config(None, ["tracking.mode=frame2frame", f"health.flag_mm={bar}", "threads=1"])
         runs[name] = run_from_config(data, cfg, tmp_path / name, print_summary=False)
     assert runs["loose"].metrics["flagged_frames"] == []
     assert runs["tight"].metrics["flagged_frames"] == [1, 2, 3, 4, 5]      # frame 0 is the start

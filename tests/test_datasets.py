@@ -439,11 +439,12 @@ def test_scared_poses_past_the_last_frame_are_dropped_with_one_log_line(tmp_path
 
 
 def test_bad_config(tmp_path):
-    root = make_stereomis(tmp_path / "seq", n=2)
-    with pytest.raises(ConfigError, match="layout"):
-        open_dataset(root, native(layout="kitti"))
+    from slam.config import load_config
+
+    with pytest.raises(ConfigError, match="'data.layout' must be one of auto, stereomis"):
+        load_config(None, ["data.layout=kitti"])
     with pytest.raises(ConfigError, match="rectify_mode"):
-        open_dataset(root, native(rectify_mode="magic"))
+        load_config(None, ["data.rectify_mode=magic"])
     with pytest.raises(DataError, match="no video_frames"):
         open_dataset(make_plain(tmp_path / "plain", n=2), native(layout="stereomis"))
 

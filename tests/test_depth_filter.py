@@ -146,7 +146,8 @@ def test_filtered_depth_selects_the_packaged_networks_trained_on_it(residuals):
 
 @pytest.mark.parametrize("scenario, expected", [("breathing", [True] * 7), ("rigid", [True] + [False] * 6)])
 def test_filter_only_while_the_camera_is_still(synth_dir, tmp_path, scenario, expected):
-    """``depth.temporal_still_mm``: a still camera's frames are filtered; a moving camera's first
+    """The still-camera rule (``depth.temporal_still_mm``, fixed at 0.1 mm a frame at 25 fps): a
+    still camera's frames are filtered; a moving camera's first
     tracked frame is (nothing has moved yet), the later ones keep their stereo depth and are weighed
     by the networks trained on stereo depth."""
     from slam.config import load_config
@@ -154,7 +155,8 @@ def test_filter_only_while_the_camera_is_still(synth_dir, tmp_path, scenario, ex
     from slam.app.pipeline import Pipeline
 
     data = synth_dir(scenario, 8, (160, 128))
-    cfg = load_config(None, ["logging.progress=false", "depth.temporal_gain=0.05", "depth.temporal_still_mm=0.1"])
+    cfg = load_config(None, ["depth.temporal_gain=0.05"])
+    assert cfg.depth.temporal_still_mm == 0.1
     pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / "run")
     odo = pipe.odometry
     assert odo.networks.stereo is not odo.networks.filtered
@@ -167,7 +169,7 @@ def test_filter_only_while_the_camera_is_still(synth_dir, tmp_path, scenario, ex
 
     def spy_track(cur, *args, **kwargs):
         result = track(cur, *args, **kwargs)
-        filtered.append(cur.stereo_depth is not None)
+        filtered.append(result.view.stereo_depth is not None)
         return result
 
     odo.track, odo.weight_maps = spy_track, spy_weights
@@ -182,8 +184,15 @@ def test_pair_cache_key_ignores_the_filter_settings_that_do_not_change_the_pairs
     (the cache filters every frame)."""
     from slam.training.trainer import _cache_key, load_train_config
 
+    import dataclasses
+
     data, path = _rigid_pairs_config(tmp_path, "rigid")
-    key = lambda *o: _cache_key(load_train_config(path, list(o)), data)   # noqa: E731
-    assert key() == key("depth.temporal_gate_mm=2", "depth.temporal_still_mm=0.1")
-    assert key("depth.temporal_gain=0.05") == key("depth.temporal_gain=0.05", "depth.temporal_still_mm=0.1")
+
+    def key(*overrides, **depth):       # depth: the fixed constants, set as an analysis would
+        cfg = load_train_config(path, list(overrides))
+        return _cache_key(dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, **depth)), data)
+
+    assert key() == key(temporal_gate_mm=2.0, temporal_still_mm=0.1)
+    assert key("depth.temporal_gain=0.05") == key("depth.temporal_gain=0.05", temporal_still_mm=0.1)
+    assert key("depth.temporal_gain=0.05") != key("depth.temporal_gain=0.05", temporal_gate_mm=2.0)
     assert key("depth.temporal_gain=0.05") != key() != key("depth.temporal_gain=0.1")

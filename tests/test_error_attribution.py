@@ -30,7 +30,7 @@ def test_exact_flow_of_a_plane_under_a_known_motion():
 def test_exact_depth_and_flow_recover_every_relative_pose(tmp_path):
     data = generate(tmp_path / "rigid", "rigid", frames=4, size=(96, 80), seed=9501,
                     appearance=Appearance(texture=0.0, highlights=1.0))
-    result = attribute_sequence(data, 1, ["correspondence.fb_check_px=0"])
+    result = attribute_sequence(data, 1, ["analysis.fb_check_px=0"])
     exact = np.asarray(result["errors"]["exact/exact/constant"])
     assert exact.shape == (3,) and np.all(exact < 2e-3)
     stereo = np.asarray(result["errors"]["stereo/dis/learned"])

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from slam.app.cli import main
-from slam.tracking.tracker import model_coverage, normalised_fusion_weight
+from slam.tracking.map_fusion import normalised_fusion_weight
+from slam.tracking.references import model_coverage
 from vo.odometry import Correspondences, masked_blur, relight
 
 
@@ -205,7 +206,7 @@ def test_masked_pixels_are_inpainted_for_the_flow_against_a_model_view(synth_dir
     cur_rgb[blob] = 255                                             # highlights, still in the image
     errors = {}
     for radius in (0.0, 3.0):
-        cfg = load_config(None, ["weights.mode=constant", f"correspondence.inpaint_px={radius}"])
+        cfg = load_config(None, ["weights.mode=constant", f"analysis.inpaint_px={radius}"])
         odo = StereoOdometry(ds.camera, cfg.vo())
         cur = odo.make_view(cur_rgb, cur_rgb, ~blob, gt_depth=np.full((H, W), 60.0))
         ref_real = odo.make_view(ref_rgb, ref_rgb, None, gt_depth=np.full((H, W), 60.0))
@@ -213,12 +214,12 @@ def test_masked_pixels_are_inpainted_for_the_flow_against_a_model_view(synth_dir
         assert np.array_equal(cur.masked, blob)
         flow = odo.correspondences(cur, ref).flow
         if radius > 0:      # inpainted once per frame (its refinement passes reuse it)
-            assert cur.flow_input is not None and odo._flow_input(cur, ref) is cur.flow_input
+            assert odo._flow_input(cur, ref) is odo._flow_input(cur, ref)
         near = torch.from_numpy(~blob & (np.abs(yy - 62) < 25) & (np.abs(xx - 82) < 30))
         errors[radius] = float((flow[0, 0] - shift).abs()[near].mean())
         if radius > 0:      # a real reference: the frame's own pixels, as before
             flow_real = odo.correspondences(cur, ref_real).flow
-            cfg0 = load_config(None, ["weights.mode=constant", "correspondence.inpaint_px=0"])
+            cfg0 = load_config(None, ["weights.mode=constant", "analysis.inpaint_px=0"])
             flow_plain = StereoOdometry(ds.camera, cfg0.vo()).correspondences(cur, ref_real).flow
             assert torch.equal(flow_real, flow_plain)
     assert errors[3.0] < 0.5 * errors[0.0], errors

@@ -283,7 +283,7 @@ def test_thresholds_follow_the_frame_rate(rigid, tmp_path):
     assert fast.depth.temporal_gate_mm == cfg.depth.temporal_gate_mm      # never below the stereo noise's
     assert fast.tracking.keyframe_gap == 10
     assert cfg.tracking.keyframe_gap == 5       # the original is untouched
-    run_cfg = load_config(None, ["logging.progress=false", "weights.mode=constant"])
+    run_cfg = load_config(None, ["weights.mode=constant"])
     ds = open_dataset(rigid, run_cfg.data).select("::2")
     result = Pipeline(run_cfg, ds, tmp_path / "run").run(progress=False)
     assert result.metrics["frame_rate"] == pytest.approx(12.5) and result.metrics["failed_frames"] == []

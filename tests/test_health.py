@@ -135,8 +135,8 @@ def test_a_run_writes_tracking_csv_and_its_summary(tmp_path):
     from slam.app.tracking_csv import COLUMNS, read_tracking_csv
 
     data = generate(tmp_path / "seq", "rigid", frames=8, size=(96, 80), seed=9601)
-    cfg = load_config(None, ["tracking.mode=frame2model", "logging.progress=false", "threads=1",
-                             "correspondence.round_trip=true"])
+    cfg = load_config(None, ["tracking.mode=frame2model", "threads=1",
+                             "analysis.round_trip=true"])
     res = run_from_config(data, cfg, tmp_path / "run", print_summary=False)
     rows = read_tracking_csv(tmp_path / "run" / "tracking.csv")
     assert list(rows) == list(COLUMNS) and len(rows["frame"]) == 8

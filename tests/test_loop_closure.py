@@ -16,7 +16,7 @@ from slam.io.tum import read_tum
 # a 60 mm loop at 160x128: the start's surfels are inactive after 30 frames and back in view
 # from frame ~90 on
 LOOP_SETTINGS = ["tracking.mode=frame2model", "graph.loop_closure=true", "graph.inactive_after=30",
-                 "graph.keyframe_mm=3", "threads=1", "logging.progress=false"]
+                 "graph.keyframe_mm=3", "threads=1"]
 
 
 def _run(data, out, extra=()):

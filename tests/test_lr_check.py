@@ -45,15 +45,15 @@ def test_pipeline_starts_the_solver_from_the_last_motion(synth_dir, tmp_path):
     data = synth_dir("rigid", 6, (160, 128))
     for init in ("constant_velocity", "identity"):
         # every frame against the previous one (a keyframe's start: tests/test_keyframes.py)
-        cfg = load_config(None, ["weights.mode=constant", f"solver.init={init}", "logging.progress=false",
-                                 "tracking.keyframe_gap=1"])
+        cfg = load_config(None, ["weights.mode=constant", "tracking.keyframe_gap=1"])
+        cfg.solver.init = init          # (fixed for users: identity)
         pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / init)
         starts, motions = [], []
         track = pipe.odometry.track
 
-        def spy(cur, ref, init=None, filter_against=None):
+        def spy(cur, ref, init=None, filter_against=None, ahead=None):
             starts.append(None if init is None else np.array(init))
-            result = track(cur, ref, init, filter_against)
+            result = track(cur, ref, init, filter_against, ahead)
             motions.append(result.relative)
             return result
 

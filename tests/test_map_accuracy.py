@@ -38,7 +38,7 @@ def test_map_fused_with_groundtruth_poses_within_half_a_millimetre(synth_dir, tm
     data = synth_dir(scenario, 40, (320, 256), seed=seed)
     out = tmp_path / "gt_poses"
     assert main(["run", str(data), "--mode", "frame2model", "--out", str(out), "--quiet",
-                 "--set", "tracking.poses=groundtruth"]) == 0
+                 "--set", "analysis.poses=groundtruth"]) == 0
     # the trajectory written is the ground truth itself
     _, est = read_tum(out / "trajectory.txt")
     _, gt = read_tum(data / "groundtruth.txt")
@@ -67,7 +67,7 @@ def test_groundtruth_poses_without_groundtruth_is_a_clear_error(synth_dir, tmp_p
     shutil.copytree(data, bare)
     (bare / "groundtruth.txt").unlink()
     code = main(["run", str(bare), "--mode", "frame2model", "--out", str(tmp_path / "o"), "--quiet",
-                 "--set", "tracking.poses=groundtruth"])
+                 "--set", "analysis.poses=groundtruth"])
     assert code != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert err and "ground" in err[-1].lower()

@@ -22,7 +22,8 @@ def load_tool():
 def test_weight_hook_sees_every_solve_and_a_common_scale_leaves_the_pose(synth_dir):
     from slam.io.datasets import DataConfig, open_dataset
     from vo.config import SolverConfig, WeightsConfig
-    from vo.odometry import StereoOdometry, VOConfig
+    from vo.config import VOConfig
+    from vo.odometry import StereoOdometry
 
     ds = open_dataset(synth_dir("rigid", 4), DataConfig())
     calls = []
@@ -95,7 +96,7 @@ def test_masking_moving_tissue_helps_the_3d_residual_only_on_exact_depth(synth_d
     common = ["weights.mode=constant", "weights.residuals=3d", "solver.robust_3d_mm=0", "depth.temporal_gain=1"]
     errors = {}
     for source in ("groundtruth", "stereo"):
-        rows = tool.run_sequence(data, [*common, f"depth.source={source}"], gaps=[1], thresholds=[0.005])
+        rows = tool.run_sequence(data, [*common, f"analysis.depth_source={source}"], gaps=[1], thresholds=[0.005])
         by_mask = {r["mask"]: r["pair_error_mm"] for r in rows}
         errors[source] = (by_mask["none"], by_mask["w3D"])
     exact, stereo = errors["groundtruth"], errors["stereo"]

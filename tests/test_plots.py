@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from slam import plots
+from slam.app import plots
 
 
 def _traj(rng, n=50, offset=None):
@@ -81,7 +81,7 @@ def test_never_uses_pyplot(tmp_path):
     # drawing happens on an Agg canvas: pyplot (and with it any GUI backend) is never imported
     code = (
         "import sys, numpy as np\n"
-        "from slam import plots\n"
+        "from slam.app import plots\n"
         "plots.plot_trajectory(sys.argv[1], np.tile(np.eye(4), (3, 1, 1)))\n"
         "assert 'matplotlib.pyplot' not in sys.modules\n"
     )

@@ -37,23 +37,24 @@ def test_prefetcher_disabled_reads_synchronously():
 
 
 def test_read_ahead_gives_the_same_run_in_another_thread(synth_dir, tmp_path):
-    """``tracking.read_ahead``: the next frame's stereo depth is made in the read-ahead thread;
-    the trajectory is the same bit for bit, the thread count of torch is restored after the run,
-    and ``threads: 0`` leaves one core to that thread."""
+    """The next frame's stereo depth is made in the read-ahead thread; the trajectory is the same
+    bit for bit as with every view made in the main thread, the thread count of torch is
+    restored after the run, and ``threads: 0`` leaves one core to that thread."""
     import numpy as np
     import torch
 
+    from slam.app.pipeline import Pipeline
     from slam.config import load_config
     from slam.io.datasets import open_dataset
-    from slam.app.pipeline import Pipeline
 
     data = synth_dir("rigid", 6, (160, 128))
     before = torch.get_num_threads()
     poses, stereo_threads = {}, {}
     for ahead in (True, False):
-        cfg = load_config(None, ["tracking.mode=frame2model", f"tracking.read_ahead={str(ahead).lower()}",
-                                 "threads=1"])
+        cfg = load_config(None, ["tracking.mode=frame2model", "threads=1"])
         pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / str(ahead))
+        if not ahead:
+            pipe._read_ahead = lambda: False
         make_view = pipe.odometry.make_view
         seen = set()
 
@@ -76,34 +77,37 @@ def test_read_ahead_gives_the_same_run_in_another_thread(synth_dir, tmp_path):
     assert pipe._torch_threads() == max(1, cores - 1)
 
 
-@pytest.mark.parametrize("mode, slow", [("frame2frame", "track"), ("last_frame", "track"), ("frame2frame", "stereo")])
+@pytest.mark.parametrize("mode, slow", [("frame2frame", "track"), ("frame2model", "track"), ("frame2frame", "stereo")])
 def test_flow_ahead_gives_the_same_run_and_goes_to_the_idle_thread(synth_dir, tmp_path, mode, slow):
-    """``tracking.read_ahead``: the read-ahead thread also computes each frame's temporal flow
-    against the previous frame, with its own estimator, unless the main thread already waits for
-    that frame; the trajectory is the same bit for bit either way. With tracking the slower
-    stage the flows go to the read-ahead thread (all but the first pair's: frame 0 is not
-    tracked, so the main thread waits for frame 1); with stereo the slower one they stay in the
-    main thread. Frame2model with the flow against the last frame takes them too."""
+    """The read-ahead thread also computes each frame's temporal flow against the previous
+    frame, with its own estimator, unless the main thread already waits for that frame; the
+    trajectory is the same bit for bit as with every flow computed where it is needed. With
+    tracking the slower stage the flows go to the read-ahead thread (all but the first pair's:
+    frame 0 is not tracked, so the main thread waits for frame 1); with stereo the slower one they
+    stay in the main thread. Frame2model's cross-check (its estimate against the last frame) takes
+    them too."""
     import time
 
     import numpy as np
 
+    from slam.app.pipeline import Pipeline
     from slam.config import load_config
     from slam.io.datasets import open_dataset
-    from slam.app.pipeline import Pipeline
 
     data = synth_dir("rigid", 6, (160, 128))
-    extra = [] if mode == "frame2frame" else ["tracking.mode=frame2model", "tracking.flow_reference=last_frame"]
     poses, main_pairs, ahead_pairs = {}, {}, {}
     for ahead in (True, False):
-        cfg = load_config(None, [*extra, f"tracking.read_ahead={str(ahead).lower()}", "threads=1", "tracking.keyframe_gap=1"])
+        cfg = load_config(None, [f"tracking.mode={mode}", "threads=1", "tracking.keyframe_gap=1"])
         pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / f"{mode}_{slow}_{ahead}")
+        if not ahead:
+            pipe._flow_ahead = lambda: False
         odo = pipe.odometry
         pair_flow, slowed = odo._pair_flow, getattr(odo, "track" if slow == "track" else "make_view")
         calls = []
 
         def spy_pairs(estimator, cur, against, *args):
-            calls.append(threading.get_ident())
+            if not against.from_model:          # (frame2model's flows against the model view: no frame pairs)
+                calls.append(threading.get_ident())
             return pair_flow(estimator, cur, against, *args)
 
         def spy_slow(*args, **kwargs):
@@ -130,7 +134,10 @@ def test_flow_ahead_gives_the_same_run_and_goes_to_the_idle_thread(synth_dir, tm
 
 def test_flow_ahead_is_taken_only_against_the_view_it_was_computed_for(synth_dir):
     """A view whose look-ahead flow went against another view than its reference (the previous
-    frame failed) computes its flow anew: the same pose as without any look-ahead."""
+    frame failed) computes its flow anew: the same pose as without any look-ahead; a view with
+    its depth filtered is still the view the flow was computed against."""
+    import dataclasses
+
     import numpy as np
 
     from slam.config import load_config
@@ -142,14 +149,12 @@ def test_flow_ahead_is_taken_only_against_the_view_it_was_computed_for(synth_dir
     dataset = open_dataset(data, cfg.data)
     odo = StereoOdometry(dataset.camera, cfg.vo())
     frames = [dataset.frame(k) for k in range(3)]
-    views = lambda: [odo.make_view(f.left, f.right, f.mask, specular=f.specular) for f in frames]  # noqa: E731
-    a, b, c = views()
+    a, b, c = (odo.make_view(f.left, f.right, f.mask, specular=f.specular) for f in frames)
     plain = odo.track(c, a).relative
-    a, b, c = views()
-    odo.flow_ahead(c, b)
-    assert c.flow_ahead is not None
-    np.testing.assert_array_equal(odo.track(c, a).relative, plain)
-    assert c.flow_ahead is None          # taken (or dropped) once
-    a, b, c = views()
-    odo.flow_ahead(c, a)
-    np.testing.assert_array_equal(odo.track(c, a).relative, plain)
+    to_b = odo.flow_ahead(c, b)
+    assert not to_b.serves(a) and to_b.serves(b)
+    assert to_b.serves(dataclasses.replace(b, depth=b.depth * 2, stereo_depth=b.depth, base=b))
+    np.testing.assert_array_equal(odo.track(c, a, ahead=to_b).relative, plain)
+    to_a = odo.flow_ahead(c, a)
+    assert odo.correspondences(c, a, ahead=to_a) is to_a.corr
+    np.testing.assert_array_equal(odo.track(c, a, ahead=to_a).relative, plain)

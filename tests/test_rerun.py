@@ -285,12 +285,12 @@ def test_spawn_failure_falls_back_to_the_file(tmp_path, monkeypatch):
 
     monkeypatch.setattr(rl.rr, "spawn", no_viewer)
     path = tmp_path / "spawn.rrd"
-    logger = RerunLogger(LoggingConfig(rerun=str(path), spawn=True), _camera(), name="x")
+    logger = RerunLogger(LoggingConfig(rerun=str(path)), _camera(), name="x", spawn=True)
     logger.log_final(None, np.zeros((0, 4, 4)), None)  # nothing logged: closes cleanly
     logger.close()  # idempotent
     assert path.is_file() and path.stat().st_size > 0
     # no file and no viewer: logging is a no-op (nothing buffered in memory)
-    logger = RerunLogger(LoggingConfig(rerun="", spawn=True), _camera(), name="y")
+    logger = RerunLogger(LoggingConfig(rerun=""), _camera(), name="y", spawn=True)
     gen = torch.Generator().manual_seed(0)
     record = FrameRecord(index=0, timestamp=0.0, pose=np.eye(4), failed=False)
     logger.log_frame(0, None, _view(gen), None, record, FakeMap(), _camera(), np.eye(4))
@@ -466,8 +466,7 @@ def _synth_run(data: Path, out: Path, overrides: list) -> tuple:
     from slam.io.datasets import open_dataset
     from slam.app.pipeline import Pipeline
 
-    config = load_config(None, ["tracking.mode=frame2model", "threads=1", "logging.progress=false",
-                                f"logging.rerun={out / 'run.rrd'}", *overrides])
+    config = load_config(None, ["tracking.mode=frame2model", "threads=1", f"logging.rerun={out / 'run.rrd'}", *overrides])
     dataset = open_dataset(data, config.data)
     logger = _CapturingLogger(config.logging, dataset.camera, name=data.name, gt_poses=dataset.gt_poses, R1=dataset.R1)
     result = Pipeline(config, dataset, out, logger=logger).run(progress=False)

@@ -55,7 +55,7 @@ def test_groundtruth_depth_switch(synth_dir, tmp_path):
     """The error budget's switch: exact depth instead of stereo depth."""
     data = synth_dir("rigid", 30, (160, 128))
     out = tmp_path / "gtdepth"
-    assert main(["run", str(data), "--weights", "constant", "--set", "depth.source=groundtruth",
+    assert main(["run", str(data), "--weights", "constant", "--set", "analysis.depth_source=groundtruth",
                  "--out", str(out), "--quiet"]) == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["failed_frames"] == [] and m["ate_rmse_mm"] < 1.0
@@ -106,7 +106,7 @@ def test_interrupted_before_the_first_frame_and_frame_reports(synth_dir, tmp_pat
     from slam.app.pipeline import Pipeline
 
     data = synth_dir("rigid", 30, (160, 128))
-    config = load_config(None, ["weights.mode=constant", "logging.progress=false"])
+    config = load_config(None, ["weights.mode=constant"])
     dataset = open_dataset(data, config.data).select("0:4")
     done = []
     result = Pipeline(config, dataset, tmp_path / "all").run(progress=False, on_frame=done.append)

@@ -55,7 +55,7 @@ def test_stereo_depth_around_highlights_is_matched_on_the_tissue(synth_dir, shif
     far = mask & (dist_l > 25)
     errors = {}
     for radius in (0.0, 3.0):
-        cfg = load_config(None, ["weights.mode=constant", f"correspondence.inpaint_px={radius}"])
+        cfg = load_config(None, ["weights.mode=constant", f"analysis.inpaint_px={radius}"])
         odo = StereoOdometry(ds.camera, cfg.vo())
         view = odo.make_view(left, right, mask, specular=specular)
         depth = view.depth[0, 0].numpy()

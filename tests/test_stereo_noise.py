@@ -11,7 +11,7 @@ import stereo_noise as tool  # noqa: E402
 def test_stereo_noise_against_the_generators_depth(synth_dir):
     data = synth_dir("breathing", 8)
     stereo = tool.sequence_noise(data, [], start=2, frames=6)
-    exact = tool.sequence_noise(data, ["depth.source=groundtruth"], start=2, frames=6)
+    exact = tool.sequence_noise(data, ["analysis.depth_source=groundtruth"], start=2, frames=6)
     assert stereo["frames"] == 6 and stereo["median_nonrigid_motion_mm"] is not None
     # stereo: a real error, below a millimetre at these depths; a part of it changes between frames
     assert 0.02 < stereo["median_abs_error_mm"] < 1.0

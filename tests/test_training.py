@@ -92,13 +92,13 @@ def test_bad_training_config(tmp_path, capsys):
     assert "'inputs' must be one of 1, 2 (weight-network input versions)" in capsys.readouterr().err
     path.write_text("optim:\n  split: random\n")
     assert main(["train", "--config", str(path)]) == 2
-    assert "'optim.split' must be sequence or pair" in capsys.readouterr().err
+    assert "'optim.split' must be one of sequence, pair" in capsys.readouterr().err
     path.write_text("data:\n  reference: rendered\n")
     assert main(["train", "--config", str(path)]) == 2
-    assert f"{path}: 'data.reference' must be frame or model" in capsys.readouterr().err
-    path.write_text("map:\n  min_depth_mm: -5\n")
+    assert f"{path}: 'data.reference' must be one of frame, model" in capsys.readouterr().err
+    path.write_text("map:\n  unstable_window: 0\n")
     assert main(["train", "--config", str(path)]) == 2
-    assert f"{path}: mapping: need 0 < min_depth_mm" in capsys.readouterr().err
+    assert "map: map.unstable_window must be >= 1" in capsys.readouterr().err
     path.write_text("data:\n  appearance: texture=2\n")
     assert main(["train", "--config", str(path)]) == 2
     assert f"{path}: data.appearance: synthetic appearance: texture 2.0 is outside 0.0..1.0" in capsys.readouterr().err
@@ -163,14 +163,14 @@ def _residuals_at_true_pose_mm(samples: list[dict], max_depth_mm: float) -> torc
 
 
 def test_pair_samples_with_the_generators_depth(tmp_path):
-    """``depth.source=groundtruth``: the pair samples' points are the exact depth back-projected, so
+    """``analysis.depth_source=groundtruth``: the pair samples' points are the exact depth back-projected, so
     at the true pose the 3D residual of a rigid scene is what the flow leaves (the stereo adds most of it)."""
     from slam.training.trainer import build_pair_samples, load_train_config
 
     data, path = _rigid_pairs_config(tmp_path, frames=6, pairs=4)
     errors = {}
     for source in ("stereo", "groundtruth"):
-        cfg = load_train_config(path, [f"depth.source={source}"])
+        cfg = load_train_config(path, [f"analysis.depth_source={source}"])
         samples = build_pair_samples(data, cfg)
         assert samples
         errors[source] = float(_residuals_at_true_pose_mm(samples, cfg.depth.max_depth_mm).median())
@@ -192,7 +192,7 @@ def test_pair_samples_against_model_views(tmp_path):
     data, path = _rigid_pairs_config(tmp_path, frames=10, pairs=6)
     per_reference = {}
     for reference in ("frame", "model"):
-        cfg = load_train_config(path, ["depth.source=groundtruth", f"data.reference={reference}"])
+        cfg = load_train_config(path, ["analysis.depth_source=groundtruth", f"data.reference={reference}"])
         samples = build_pair_samples(data, cfg)
         assert len(samples) == 6
         assert float(_residuals_at_true_pose_mm(samples, cfg.depth.max_depth_mm).max()) < 0.2   # (0.13 when written)

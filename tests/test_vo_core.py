@@ -92,7 +92,7 @@ def test_closed_form_normal_equations_match_the_jacobians():
     assert torch.allclose(gv[0], g_ref, rtol=1e-10, atol=1e-14)
 
 
-@pytest.mark.parametrize("method", ["lm", "gauss_newton", "lbfgs"])
+@pytest.mark.parametrize("method", ["lm", "lbfgs"])
 def test_solver_recovers_known_pose(method):
     p_gt = p_from_mm_rad([0.8, -0.5, 1.2], [0.02, -0.015, 0.01])
     prob = make_problem(p_gt)
@@ -224,7 +224,7 @@ def test_robust_3d_step_ignores_a_non_rigid_patch(synth_dir):
     for scale, model_reference in ((0.0, False), (0.5, False), (0.5, True)):
         cfg = load_config(None, ["weights.mode=constant", "weights.w3d=1.0", f"solver.robust_3d_mm={scale}", "depth.temporal_gain=1"])
         odo = StereoOdometry(ds.camera, cfg.vo())
-        odo.correspondences = lambda cur, against: Correspondences(flow, None)     # exact flow
+        odo.correspondences = lambda cur, against, **_: Correspondences(flow, None)     # exact flow
         res = odo.track(view(depth_cur), view(depth_ref, from_model=model_reference))
         assert not res.failed
         errors[scale, model_reference] = float(np.linalg.norm(res.relative[:3, 3] - T[:3, 3].numpy()))
@@ -288,10 +288,9 @@ def test_compiled_normal_equations_match_torch():
             assert torch.allclose(b, a.double(), rtol=rtol, atol=rtol * float(a.abs().max())), (a, b)
     p_gt = p_from_mm_rad([0.8, -0.5, 1.2], [0.02, -0.015, 0.01])
     exact = make_problem(p_gt)
-    for method in ("lm", "gauss_newton"):
-        res = solve_pose(exact, SolverConfig(method=method), tol=Tolerance(kernel="compiled"))
-        rot_err, trans_err = pose_errors(res.p, p_gt)
-        assert rot_err < 1e-5 and trans_err < 1e-5, (rot_err, trans_err)
+    res = solve_pose(exact, SolverConfig(method="lm"), tol=Tolerance(kernel="compiled"))
+    rot_err, trans_err = pose_errors(res.p, p_gt)
+    assert rot_err < 1e-5 and trans_err < 1e-5, (rot_err, trans_err)
     noisy32 = prob.to(torch.float32)
     a = solve_pose(noisy32, SolverConfig(), tol=Tolerance(kernel="torch")).T
     b = solve_pose(noisy32, SolverConfig(), tol=Tolerance(kernel="compiled")).T

@@ -303,7 +303,7 @@ def run_ours(data: str, overrides: list[str], out: str, frames=None, mode: str =
     from slam.config import load_config
     from slam.app.runner import run_from_config
 
-    cfg = load_config(None, [*overrides, f"tracking.mode={mode}", "logging.progress=false"])
+    cfg = load_config(None, [*overrides, f"tracking.mode={mode}"])
     result = run_from_config(data, cfg, out, frames, print_summary=False, overwrite=True)
     m = result.metrics
     t = m.get("timings_ms", {})

@@ -1,6 +1,6 @@
 """Error budget: how much of the trajectory error comes from stereo depth, and how much from flow
 and weighting. Runs frame2frame on synthetic evaluation sequences twice, once with stereo depth
-and once with the generator's exact depth (``depth.source=groundtruth``), and prints a table.
+and once with the generator's exact depth (``analysis.depth_source=groundtruth``), and prints a table.
 
     .venv/bin/python tools/benchmark_error_budget.py [--scenarios rigid scanning breathing deforming]
         [--frames 100] [--size 320x256] [--seeds 9001 9002] [--weights constant] [--out runs/error_budget]
@@ -38,8 +38,8 @@ def main() -> None:
                 data = out / "data" / f"{scenario}_s{seed}_{args.size}_{args.frames}"
                 if not (data / "groundtruth.txt").is_file():
                     generate(data, scenario, frames=args.frames, size=(w, h), seed=seed)
-                cfg = load_config(None, [f"weights.mode={args.weights}", f"depth.source={source}",
-                                         "logging.progress=false", *args.set])
+                cfg = load_config(None, [f"weights.mode={args.weights}", f"analysis.depth_source={source}",
+                                         *args.set])
                 res = run_from_config(data, cfg, out / "runs" / f"{scenario}_s{seed}_{source}", print_summary=False,
                                       overwrite=True)
                 ates.append(res.metrics["ate_rmse_mm"])

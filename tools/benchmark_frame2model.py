@@ -47,7 +47,7 @@ def run_one(job: dict) -> dict:
     from slam.app.pipeline import Pipeline
 
     # one torch thread per worker process (the workers share the cores)
-    cfg = load_config(None, [*METHODS[job["method"]], "logging.progress=false", "threads=1", *job["extra"]])
+    cfg = load_config(None, [*METHODS[job["method"]], "threads=1", *job["extra"]])
     dataset = open_dataset(Path(job["data"]), cfg.data)
     result = Pipeline(cfg, dataset, Path(job["out"])).run(progress=False)
     m = result.metrics

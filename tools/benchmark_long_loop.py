@@ -39,7 +39,7 @@ def run_one(job: dict) -> dict:
     from slam.io.datasets import open_dataset
     from slam.app.pipeline import Pipeline
 
-    cfg = load_config(None, [*METHODS[job["method"]], "logging.progress=false", "threads=1", *job["extra"]])
+    cfg = load_config(None, [*METHODS[job["method"]], "threads=1", *job["extra"]])
     dataset = open_dataset(Path(job["data"]), cfg.data)
     pipeline = Pipeline(cfg, dataset, Path(job["out"]))
     result = pipeline.run(progress=False)

@@ -67,7 +67,7 @@ def run_one(job: dict) -> dict:
     from slam.io.datasets import open_dataset
     from slam.app.pipeline import Pipeline
 
-    cfg = load_config(None, [*METHODS[job["method"]], "logging.progress=false", "threads=1", *job["extra"]])
+    cfg = load_config(None, [*METHODS[job["method"]], "threads=1", *job["extra"]])
     result = Pipeline(cfg, open_dataset(Path(job["data"]), cfg.data), Path(job["out"])).run(progress=False)
     m = result.metrics
     lc = m.get("loop_closure", {})

@@ -134,7 +134,7 @@ def run_one(job: dict) -> dict:
         residuals = next(o.split("=", 1)[1] for o in overrides if o.startswith("weights.residuals="))
         overrides.append(f"weights.checkpoint={Path(job['checkpoints']) / f'weights_{residuals}.pt'}")
     # one torch thread per worker process (the workers share the cores)
-    cfg = load_config(None, [*overrides, "logging.progress=false", "threads=1", *job["extra"]])
+    cfg = load_config(None, [*overrides, "threads=1", *job["extra"]])
     # the previous frame is every frame's reference (frame2frame without keyframes)
     pair = PAIR_MOTION_MM if cfg.tracking.mode == "frame2frame" and cfg.tracking.keyframe_gap == 1 else None
     stats = WeightStats(pair_threshold_mm=pair) if job["method"].startswith("learned") else None

@@ -39,7 +39,7 @@ def run_one(job: dict) -> dict:
     from slam.io.datasets import open_dataset
     from slam.app.pipeline import Pipeline
 
-    cfg = load_config(None, [f"tracking.mode={job['mode']}", "logging.progress=false", "threads=1", *job["extra"]])
+    cfg = load_config(None, [f"tracking.mode={job['mode']}", "threads=1", *job["extra"]])
     m = Pipeline(cfg, open_dataset(Path(job["data"]), cfg.data), Path(job["out"])).run(progress=False).metrics
     return {**{k: job[k] for k in ("scenario", "seed", "mode", "variant")}, "ate_rmse_mm": m["ate_rmse_mm"],
             "failed": len(m["failed_frames"])}

@@ -42,8 +42,8 @@ def run_one(job: dict) -> dict:
         w, h = job["size"]
         generate(data, job["scenario"], frames=job["frames"], size=(w, h), seed=job["seed"],
                  appearance=random_appearance(job["seed"]))
-    cfg = load_config(None, [f"tracking.mode={job['mode']}", "health.covariance_scale_frame=1",
-                             "health.covariance_scale_model=1", "threads=1", "logging.progress=false"])
+    cfg = load_config(None, [f"tracking.mode={job['mode']}", "analysis.covariance_scale_frame=1",
+                             "analysis.covariance_scale_model=1", "threads=1"])
     out = Path(job["out"])
     res = run_from_config(data, cfg, out, print_summary=False, overwrite=True)
     rows = read_tracking_csv(out / "tracking.csv")

@@ -3,7 +3,8 @@
 A maintainer's check for a change that must not change behaviour (a redesign): each case runs
 ``slam run`` with ``threads=1`` in a git worktree of the base commit and in this checkout, one
 after the other, and compares ``trajectory.txt``, ``tracking.csv``, ``metrics.json`` (without
-timings, speed, memory and provenance) and ``map.ply`` byte for byte. Prints a Markdown table;
+timings, speed, memory and provenance; its accuracy figures to 1e-9, as evo computes them) and
+``map.ply`` byte for byte. Prints a Markdown table;
 exit code 1 when a file differs.
 
     .venv/bin/python tools/check_behaviour.py --base COMMIT [--cases default paper ...] [--out DIR]
@@ -27,9 +28,14 @@ ROOT = Path(__file__).resolve().parents[1]
 #: metrics.json keys that measure the machine, not the result
 VOLATILE = ("fps", "timings_ms", "peak_rss_mb", "provenance", "data")
 FILES = ("trajectory.txt", "tracking.csv", "metrics.json", "map.ply")
-#: the ``slam`` command of whichever checkout is on PYTHONPATH (older ones kept it in slam.cli)
-SLAM_MAIN = ("import sys\ntry:\n    from slam.app.cli import main\nexcept ImportError:\n    from slam.cli import main\n"
-             "sys.argv[0] = 'slam'\nsys.exit(main())")
+
+
+def slam_main(tree: Path) -> str:
+    """Python code running the ``slam`` command of the checkout ``tree`` (on PYTHONPATH; older
+    checkouts kept it in slam.cli; an import that fails is no test: the virtual environment's
+    editable install may find the main checkout's modules)."""
+    module = "slam.app.cli" if (tree / "slam" / "app" / "cli.py").is_file() else "slam.cli"
+    return f"import sys\nfrom {module} import main\nsys.argv[0] = 'slam'\nsys.exit(main())"
 
 
 @dataclass
@@ -68,7 +74,8 @@ CASES = {c.name: c for c in [
     Case("residuals-2d", "scanning", ["--residuals", "2d"]),
     Case("residuals-3d", "scanning", ["--residuals", "3d"]),
     Case("constant", "scanning", ["--weights", "constant"]),
-    Case("groundtruth-poses", "scanning", ["--set", "tracking.poses=groundtruth"]),
+    Case("groundtruth-poses", "scanning", ["--set", "tracking.poses=groundtruth"],
+         new=["--set", "analysis.poses=groundtruth"]),
 ]}
 
 
@@ -77,7 +84,7 @@ def render(out: Path) -> dict[str, Path]:
     for seq in SEQUENCES.values():
         path = out / "data" / seq.name
         if not (path / "groundtruth.txt").is_file():
-            subprocess.run([sys.executable, "-c", SLAM_MAIN, "synth", str(path), *seq.synth, "--quiet"],
+            subprocess.run([sys.executable, "-c", slam_main(ROOT), "synth", str(path), *seq.synth, "--quiet"],
                            check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
             for k in seq.unreadable:
                 (path / "video_frames" / f"{k:06d}l.png").write_bytes(b"not a png")
@@ -88,21 +95,41 @@ def render(out: Path) -> dict[str, Path]:
 def run(tree: Path, data: Path, out: Path, args: list) -> tuple[int, str]:
     shutil.rmtree(out, ignore_errors=True)
     env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "-c", SLAM_MAIN, "run", str(data), "--out", str(out), "--quiet",
+    proc = subprocess.run([sys.executable, "-c", slam_main(tree), "run", str(data), "--out", str(out), "--quiet",
                            "--set", "threads=1", *args], capture_output=True, text=True, cwd=tree, env=env)
     return proc.returncode, (proc.stderr.strip().splitlines() or [""])[-1]
 
 
-def comparable(path: Path) -> bytes | None:
-    if not path.is_file():
-        return None
-    if path.name != "metrics.json":
-        return path.read_bytes()
+def read_metrics(path: Path) -> dict:
     metrics = json.loads(path.read_text())
     for key in VOLATILE:
         metrics.pop(key, None)
     metrics.get("loop_closure", {}).pop("ms_per_frame", None)      # (the detection's time)
-    return json.dumps(metrics, indent=1, sort_keys=True).encode()
+    return metrics
+
+
+def close(a, b, rtol: float = 1e-9) -> bool:
+    """Equal, floats within ``rtol`` (the accuracy figures: evo sums in another order)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(close(a[k], b[k], rtol) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(close(x, y, rtol) for x, y in zip(a, b))
+    if isinstance(a, float) and isinstance(b, float):
+        return a == b or abs(a - b) <= rtol * max(abs(a), abs(b))
+    return a == b
+
+
+def compare(a: Path, b: Path) -> str:
+    """``same`` (byte for byte; metrics.json: without timings, and ``same to 1e-9`` where its
+    figures differ in the last digits), ``**differs**``, or ``-`` where neither run wrote it."""
+    if not a.is_file() and not b.is_file():
+        return "-"
+    if not (a.is_file() and b.is_file()):
+        return "**differs**"
+    if a.name != "metrics.json":
+        return "same" if a.read_bytes() == b.read_bytes() else "**differs**"
+    ma, mb = read_metrics(a), read_metrics(b)
+    return "same" if ma == mb else ("same to 1e-9" if close(ma, mb) else "**differs**")
 
 
 def main() -> int:
@@ -130,12 +157,8 @@ def main() -> int:
             runs[label] = out / "runs" / name / label
             if code != 0:
                 notes.append(f"{label} exit {code}: {last}")
-        cells = []
-        for f in FILES:
-            a, b = comparable(runs["base"] / f), comparable(runs["new"] / f)
-            same = a == b
-            differ |= not same
-            cells.append("-" if a is None and b is None else ("same" if same else "**differs**"))
+        cells = [compare(runs["base"] / f, runs["new"] / f) for f in FILES]
+        differ |= "**differs**" in cells
         print(f"| {name} | {case.sequence} | " + " | ".join(cells) + f" | {'; '.join(notes)} |", flush=True)
     return 1 if differ else 0
 

@@ -10,7 +10,7 @@ and the fusion on the device; the numba kernels give way to the torch code there
 for each mode the largest difference of the per-frame relative poses (mm, deg) and both runs' fps.
 
 Without a GPU, ``--device cpu`` runs the device side on the CPU with the torch kernels forced
-(``solver.kernel=torch``, ``map.kernels=torch``): the code a GPU runs, on this machine. The exit
+(``analysis.solver_kernel=torch``, ``analysis.map_kernels=torch``): the code a GPU runs, on this machine. The exit
 code is 1 when a frame2frame pose differs by more than ``--tol-mm`` / ``--tol-deg`` (1e-3 each).
 frame2model's figures are printed beside it: there a pose also depends on the map built from
 every earlier pose, so the two runs' inputs are identical only as far as the maps agree, and a
@@ -52,9 +52,9 @@ def pose_differences(ref: np.ndarray, dev: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 def run(data: Path, out: Path, mode: str, device: str, torch_kernels: bool, sets: list[str]) -> tuple[np.ndarray, float]:
-    overrides = [f"tracking.mode={mode}", f"device={device}", "logging.progress=false", *sets]
+    overrides = [f"tracking.mode={mode}", f"device={device}", *sets]
     if torch_kernels:
-        overrides += ["solver.kernel=torch", "map.kernels=torch"]
+        overrides += ["analysis.solver_kernel=torch", "analysis.map_kernels=torch"]
     result = run_from_config(data, load_config(None, overrides), out=out, print_summary=False, overwrite=True)
     return relative_poses(result.records), float(result.metrics["fps"])
 

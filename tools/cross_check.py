@@ -54,7 +54,7 @@ def run_open_loop(job: dict) -> dict:
 
     torch.set_num_threads(1)
     data = sequence(job)
-    cfg = load_config(None, ["tracking.mode=frame2model", "health.flag_mm=1e9", "threads=1", "logging.progress=false"])
+    cfg = load_config(None, ["tracking.mode=frame2model", "health.flag_mm=1e9", "threads=1"])
     ds = open_dataset(data, cfg.data)
     pipe = Pipeline(cfg, ds, Path(job["out"]) / "runs" / f"{data.name}_open")
     tracker = pipe.tracker
@@ -97,7 +97,7 @@ def run_closed_loop(job: dict) -> dict:
     out = {"name": data.name}
     off = ["health.cross_check=0", "health.flag_mm=1e9"]       # the model view's estimate alone, no flags
     for tag, overrides in (("off", off), ("on", [f"health.cross_check={job['limit']}", *job["set"]])):
-        cfg = load_config(None, ["tracking.mode=frame2model", "threads=1", "logging.progress=false", *overrides])
+        cfg = load_config(None, ["tracking.mode=frame2model", "threads=1", *overrides])
         res = run_from_config(data, cfg, Path(job["out"]) / "runs" / f"{data.name}_{tag}{job['tag'] if tag == 'on' else ''}",
                               print_summary=False, overwrite=True)
         m = res.metrics

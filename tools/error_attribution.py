@@ -66,9 +66,9 @@ def attribute_sequence(data: Path, step: int, overrides: list[str]) -> dict:
     from vo.health import weighted_median
     from vo.odometry import Correspondences, StereoOdometry
 
-    cfg = load_config(None, ["logging.progress=false", *overrides])
+    cfg = load_config(None, [*overrides])
     ds = open_dataset(data, cfg.data)
-    odo = {w: StereoOdometry(ds.camera, load_config(None, ["logging.progress=false", f"weights.mode={w}",
+    odo = {w: StereoOdometry(ds.camera, load_config(None, [f"weights.mode={w}",
                                                            *overrides]).vo())
            for w in ("learned", "constant")}
     K = np.asarray(ds.camera.K, np.float64)

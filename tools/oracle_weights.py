@@ -37,7 +37,7 @@ def run_sequence(data: Path, overrides: list[str], gaps: list[int], thresholds: 
     from vo.geometry import change_along_flow
     from vo.odometry import StereoOdometry
 
-    cfg = load_config(None, ["logging.progress=false", *overrides])
+    cfg = load_config(None, [*overrides])
     ds = open_dataset(data, cfg.data)
     if ds.gt_poses is None:
         raise SystemExit(f"{data}: needs groundtruth.txt")

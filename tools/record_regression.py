@@ -51,7 +51,7 @@ def run(name: str, root: Path) -> dict:
 
     scenario, overrides = RUNS[name]
     data = sequence(root, scenario)
-    cfg = load_config(None, [*overrides, "threads=1", "logging.progress=false"])
+    cfg = load_config(None, [*overrides, "threads=1"])
     result = Pipeline(cfg, open_dataset(data, cfg.data), root / "runs" / name).run(progress=False)
     return {"poses": np.stack([r.pose for r in result.records]), "ate_rmse_mm": result.metrics["ate_rmse_mm"],
             "failed_frames": result.metrics["failed_frames"]}

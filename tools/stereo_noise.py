@@ -28,7 +28,7 @@ def sequence_noise(data: Path, overrides: list[str], start: int, frames: int) ->
     from slam.app.frame_view import frame_view
     from vo.odometry import StereoOdometry
 
-    cfg = load_config(None, ["logging.progress=false", *overrides])
+    cfg = load_config(None, [*overrides])
     ds = open_dataset(data, cfg.data)
     odo = StereoOdometry(ds.camera, cfg.vo())
     fxb = ds.camera.depth_from_disparity_scale()
@@ -41,7 +41,7 @@ def sequence_noise(data: Path, overrides: list[str], start: int, frames: int) ->
         f = ds.frame(k)
         if f.gt_depth is None:
             raise SystemExit(f"{data}: no ground-truth depth (a synthetic sequence from `slam synth` has it)")
-        # depth.source=groundtruth gives the generator's depth to the view: a zero-noise reference
+        # analysis.depth_source=groundtruth gives the generator's depth to the view: a zero-noise reference
         depth = frame_view(odo, f, data).depth[0, 0].numpy()
         ok = (depth > 0) & (f.gt_depth > 0)
         err = np.where(ok, depth - f.gt_depth, np.nan)

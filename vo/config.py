@@ -1,7 +1,27 @@
-"""Configuration of the VO core, one dataclass per concern."""
+"""Configuration of the VO core, one dataclass per concern.
+
+Choices are ``Literal`` types, range checks live in each class (``__post_init__``). A field whose
+metadata says ``fixed`` is a constant a person does not set (the application's configuration
+refuses it; its analysis tools may change it through the ``analysis`` section): it is carried
+here because the frame rate scales it, or because an analysis tool varies it.
+"""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Literal
+
+Preset = Literal["ultrafast", "fast", "medium"]
+
+
+def fixed(why: str, default):
+    """A field a person does not set (see the module docstring)."""
+    return field(default=default, metadata={"fixed": why})
+
+
+def need(ok: bool, message: str) -> None:
+    """A range check: ``ValueError(message)`` where ``ok`` is False."""
+    if not ok:
+        raise ValueError(message)
 
 
 @dataclass
@@ -51,18 +71,21 @@ class CorrespondenceConfig:
             3.5-5 % of the pixels in highlights (docs/experiments.md).
     """
 
-    backend: str = "dis"
-    dis_preset: str = "medium"
-    dis_stereo_preset: str = "medium"
-    dis_match_exposure: bool = True
+    backend: Literal["dis", "raft"] = "dis"
+    dis_preset: Preset = "medium"
+    dis_stereo_preset: Preset = "medium"
+    dis_lr_check_preset: Preset = "medium"
     raft_checkpoint: str = ""
-    raft_iters: int = 12
     lr_check_px: float = 1.0
-    dis_lr_check_preset: str = "medium"
-    fb_check_px: float = 0.0
-    round_trip: bool = False
-    max_vertical_parallax_px: float = 2.0
-    inpaint_px: float = 3.0
+    dis_match_exposure: bool = fixed("an analysis switch (analysis.match_exposure)", True)
+    raft_iters: int = fixed("RAFT's update iterations, as the published checkpoints were trained", 12)
+    fb_check_px: float = fixed("an analysis switch (analysis.fb_check_px)", 0.0)
+    round_trip: bool = fixed("an analysis switch (analysis.round_trip)", False)
+    max_vertical_parallax_px: float = fixed("rectified views have no vertical parallax; 2 px of slack", 2.0)
+    inpaint_px: float = fixed("an analysis switch (analysis.inpaint_px)", 3.0)
+
+    def __post_init__(self):
+        need(self.lr_check_px >= 0, "correspondence.lr_check_px must be >= 0 (0 = no left-right check)")
 
 
 @dataclass
@@ -73,8 +96,6 @@ class DepthConfig:
         min_depth_mm: nearer depths are invalid.
         max_depth_mm: farther depths are invalid; also the normaliser of depth inside the solver
             (paper, Sec. 2.1) and of the weight networks' depth inputs.
-        source: ``stereo`` (depth from the stereo parallax flow) or ``groundtruth`` (the synthetic
-            generator's exact depth: the error budget's switch).
         temporal_gain: < 1: each frame's depth is filtered along the temporal flow against its
             reference frame's (already filtered) depth, ``d = d_ref(x + F) + gain (d_stereo -
             d_ref(x + F))`` (:func:`vo.depth.filter_depth_along_flow`), so that the stereo error,
@@ -97,10 +118,15 @@ class DepthConfig:
 
     min_depth_mm: float = 20.0
     max_depth_mm: float = 250.0
-    source: str = "stereo"
     temporal_gain: float = 0.05
-    temporal_gate_mm: float = 1.0
-    temporal_still_mm: float = 0.1
+    temporal_gate_mm: float = fixed("a constant scaled by the frame rate (slam.config.at_frame_rate)", 1.0)
+    temporal_still_mm: float = fixed("a constant scaled by the frame rate (slam.config.at_frame_rate)", 0.1)
+
+    def __post_init__(self):
+        need(self.max_depth_mm > self.min_depth_mm > 0, "depth: need 0 < min_depth_mm < max_depth_mm")
+        need(0.0 < self.temporal_gain <= 1.0, "depth.temporal_gain must be in (0, 1] (1 = off)")
+        need(self.temporal_gate_mm > 0, "depth.temporal_gate_mm must be > 0")
+        need(self.temporal_still_mm >= 0, "depth.temporal_still_mm must be >= 0 (0 = filter every frame)")
 
 
 @dataclass
@@ -108,8 +134,8 @@ class SolverConfig:
     """The non-linear least-squares pose solver (paper eq. 4).
 
     Attributes:
-        method: ``lm`` (Levenberg-Marquardt with analytic Jacobians), ``gauss_newton`` or
-            ``lbfgs`` (as in the paper, autograd gradients).
+        method: ``lm`` (Levenberg-Marquardt with analytic Jacobians) or ``lbfgs`` (as in the
+            paper, autograd gradients).
         max_iters: iteration cap.
         max_translation_mm: a relative motion larger than this is a failure.
         max_rotation_deg: a relative rotation larger than this is a failure.
@@ -133,15 +159,22 @@ class SolverConfig:
             to run the code a GPU runs).
     """
 
-    method: str = "lm"
+    method: Literal["lm", "lbfgs"] = "lm"
     max_iters: int = 30
-    max_translation_mm: float = 20.0
-    max_rotation_deg: float = 15.0
-    min_valid_pixels: int = 200
-    init: str = "identity"
-    max_pixels: int = 16384
     robust_3d_mm: float = 0.5
-    kernel: str = "auto"
+    max_translation_mm: float = fixed("the plausibility check, scaled by the frame rate", 20.0)
+    max_rotation_deg: float = fixed("the plausibility check", 15.0)
+    min_valid_pixels: int = fixed("the plausibility check", 200)
+    init: Literal["identity", "constant_velocity"] = fixed("the solver starts at the identity", "identity")
+    max_pixels: int = fixed("the solver's pixel budget (vo.residuals.PoseProblem.compact)", 16384)
+    kernel: Literal["auto", "compiled", "torch"] = fixed("an analysis switch (analysis.solver_kernel)", "auto")
+
+    def __post_init__(self):
+        need(self.max_iters >= 1, "solver.max_iters must be >= 1")
+        need(self.robust_3d_mm >= 0, "solver.robust_3d_mm must be >= 0 (0 = off)")
+        need(self.max_translation_mm > 0 and self.max_rotation_deg > 0,
+             "solver.max_translation_mm and max_rotation_deg must be > 0")
+        need(self.min_valid_pixels >= 1, "solver.min_valid_pixels must be >= 1")
 
 
 @dataclass
@@ -162,9 +195,22 @@ class WeightsConfig:
             (docs/training.md).
     """
 
-    mode: str = "learned"
-    residuals: str = "2d3d"
+    mode: Literal["learned", "constant"] = "learned"
+    residuals: Literal["2d3d", "2d", "3d"] = "2d3d"
     w2d: float = 1.0
     w3d: float = 0.01
     checkpoint: str = ""
     checkpoint_model: str = ""
+
+    def __post_init__(self):
+        need(self.w2d >= 0 and self.w3d >= 0, "weights.w2d/w3d must be >= 0")
+
+
+@dataclass
+class VOConfig:
+    """The VO core's configuration, one section per concern."""
+
+    correspondence: CorrespondenceConfig = field(default_factory=CorrespondenceConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    weights: WeightsConfig = field(default_factory=WeightsConfig)

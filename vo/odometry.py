@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from vo.camera import StereoCamera
-from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
+from vo.config import VOConfig
 from vo.correspondence import make_flow_estimators, make_lr_check_flow
 from vo.correspondence.dis import DisFlow, to_gray_u8
 from vo.depth import (depth_from_parallax, filter_depth_along_flow, flow_consistency, parallax_from_depth,
@@ -44,19 +44,11 @@ from vo.weights import TrackingNetworks, WeightInputs, constant_weights, load_tr
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class VOConfig:
-    """The VO core's configuration, one section per concern."""
-
-    correspondence: CorrespondenceConfig = field(default_factory=CorrespondenceConfig)
-    depth: DepthConfig = field(default_factory=DepthConfig)
-    solver: SolverConfig = field(default_factory=SolverConfig)
-    weights: WeightsConfig = field(default_factory=WeightsConfig)
-
-
-@dataclass
+@dataclass(frozen=True, eq=False)
 class View:
-    """One view as the VO core uses it (batch of 1).
+    """One view as the VO core uses it (batch of 1). Immutable: the read-ahead thread makes it
+    while the main thread tracks another; filtering its depth makes a new one
+    (:meth:`StereoOdometry.filter_depth`). Compared by identity.
 
     Attributes:
         image: ``(1, 3, H, W)`` float32 RGB in [0, 1].
@@ -75,14 +67,10 @@ class View:
             pixels.
         image_of: the real view whose image this one shows (a model view seen with the last
             frame's pixels), whose flows serve this view; else None.
-        flow_input: the image and grey image with the masked pixels inpainted, kept once
-            computed (:meth:`StereoOdometry._flow_input`: a frame is flowed against a model
-            view in its tracking pass and its refinement passes).
-        flow_ahead: the temporal flow of this view against an earlier real view, computed
-            before it was needed (:meth:`StereoOdometry.flow_ahead`): a weak reference to that
-            view and its :class:`Correspondences`; taken once by the tracking that uses it.
-        stereo_depth: the view's own stereo depth once ``depth`` holds it filtered along the flow
-            (:meth:`StereoOdometry.filter_depth`), else None.
+        stereo_depth: the view's own stereo depth where ``depth`` holds it filtered along the
+            flow (:meth:`StereoOdometry.filter_depth`), else None.
+        base: the view this one was made from by filtering its depth (the same images), else
+            None: flows computed for the one serve the other (:attr:`origin`).
     """
 
     image: torch.Tensor
@@ -95,9 +83,18 @@ class View:
     from_model: bool = False
     rendered: bool = False
     image_of: "View | None" = field(default=None, repr=False)
-    flow_input: tuple[torch.Tensor, np.ndarray] | None = field(default=None, repr=False)
-    flow_ahead: tuple[weakref.ref, "Correspondences"] | None = field(default=None, repr=False)
     stereo_depth: torch.Tensor | None = field(default=None, repr=False)
+    base: "View | None" = field(default=None, repr=False)
+
+    @property
+    def origin(self) -> "View":
+        """The view whose images these are (itself, or the view it was filtered from)."""
+        return self.base if self.base is not None else self
+
+    @property
+    def unfiltered(self) -> "View":
+        """This view with its own stereo depth (itself when it holds it)."""
+        return self.base if self.stereo_depth is not None else self
 
 
 class Correspondences(NamedTuple):
@@ -116,6 +113,18 @@ class Correspondences(NamedTuple):
     ok: torch.Tensor | None
     round_trip: torch.Tensor | None = None
     back_ms: float = 0.0
+
+
+class AheadFlow(NamedTuple):
+    """A temporal flow computed before it was needed (:meth:`StereoOdometry.flow_ahead`, in the
+    read-ahead thread): ``corr`` of the current view against the real view ``against``."""
+
+    against: View
+    corr: Correspondences
+
+    def serves(self, against: View) -> bool:
+        """Whether it is the flow against ``against`` (the same images)."""
+        return self.against.origin is against.origin
 
 
 class ResidualProblem(NamedTuple):
@@ -155,6 +164,7 @@ class TrackResult:
         support: the share of the current view's valid pixels that carry a weight.
         round_trip_px: the w2D-weighted median forward-backward disagreement of the temporal
             flow (pixels; nan where it was not computed).
+        view: the current view as tracked (its depth filtered where it was).
     """
 
     relative: np.ndarray
@@ -170,6 +180,7 @@ class TrackResult:
     fit: PoseFit | None = None
     support: float = float("nan")
     round_trip_px: float = float("nan")
+    view: View | None = None
 
 
 def image_tensor(rgb: np.ndarray, device: str | torch.device = "cpu") -> torch.Tensor:
@@ -210,6 +221,9 @@ class StereoOdometry:
         elif wcfg.mode != "constant":
             raise ValueError(f"unknown weights.mode '{wcfg.mode}' (learned, constant)")
         self._ahead_flow_estimator = None   # the look-ahead thread's own temporal flow (flow_ahead)
+        # a real frame's image with its masked pixels inpainted, for flows against a model view's
+        # colour (the frame is flowed against the model in its tracking and refinement passes)
+        self._flow_inputs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
     # ---------------------------------------------------------------- views
     def _flow(self, estimator, a_img: torch.Tensor, a_gray: np.ndarray, b_img: torch.Tensor, b_gray: np.ndarray) -> torch.Tensor:
@@ -312,7 +326,7 @@ class StereoOdometry:
 
     # ---------------------------------------------------------------- tracking
     def track(self, cur: View, ref: View, init: np.ndarray | None = None,
-              filter_against: View | None = None) -> TrackResult:
+              filter_against: View | None = None, ahead: AheadFlow | None = None) -> TrackResult:
         """Estimate the transform from ``cur``'s camera to ``ref``'s camera.
 
         Args:
@@ -324,19 +338,19 @@ class StereoOdometry:
                 against along the flow (:meth:`filter_depth`; it may be ``ref``, or the frame
                 before ``cur`` when ``ref`` is an older keyframe); None: ``cur`` keeps its own
                 stereo depth.
+            ahead: ``cur``'s flow computed ahead (:meth:`flow_ahead`), taken where it goes against
+                the view a flow is needed to.
         """
         timings: dict = {}
         t0 = time.perf_counter()
-        # 1. correspondences (the flow to the filter's frame first: a flow kept ahead is taken once)
+        # 1. correspondences (the flow to the filter's frame, when that is not the reference, first)
         filter_corr = None
         if filter_against is not None and filter_against is not ref:
-            filter_corr = self.correspondences(cur, filter_against, round_trip=False)
-        ahead = cur.flow_ahead[1] if cur.flow_ahead is not None else None
-        corr = self.correspondences(cur, ref)
-        back_ms = 0.0 if corr is ahead else corr.back_ms     # a flow ahead was timed in its thread
-        cur.flow_ahead = None
+            filter_corr = self.correspondences(cur, filter_against, round_trip=False, ahead=ahead)
+        corr = self.correspondences(cur, ref, ahead=ahead)
+        back_ms = 0.0 if ahead is not None and corr is ahead.corr else corr.back_ms   # (timed in its thread)
         # 2. depth
-        self.filter_depth(cur, filter_against, corr if filter_corr is None else filter_corr)
+        cur = self.filter_depth(cur, filter_against, corr if filter_corr is None else filter_corr)
         t1 = time.perf_counter()
         # 3. the residual problem (eqs. 1-2) and 4. the weight maps (eqs. 5-6)
         problem = self.residual_problem(cur, ref, corr)
@@ -356,18 +370,18 @@ class StereoOdometry:
                            cost=float("nan") if result is None else float(result.cost[0]),
                            valid_pixels=n_valid, flow=corr.flow, w2d=w2d, w3d=w3d, timings_ms=timings,
                            fit=None if reason else fit, support=n_valid / n_cur if n_cur else 0.0,
-                           round_trip_px=fb)
+                           round_trip_px=fb, view=cur)
 
-    def correspondences(self, cur: View, against: View, round_trip: bool | None = None) -> Correspondences:
+    def correspondences(self, cur: View, against: View, round_trip: bool | None = None,
+                        ahead: AheadFlow | None = None) -> Correspondences:
         """Step 1: the temporal flow ``cur -> against`` (against the real view whose pixels
-        ``against`` shows, if any): the one :meth:`flow_ahead` kept on ``cur`` when it goes against
-        that view, else computed now; with ``round_trip`` (None: ``correspondence.round_trip``)
-        its forward-backward disagreement (the flow the pose is solved on: a health figure), else
-        the flow back only for ``correspondence.fb_check_px``."""
+        ``against`` shows, if any): ``ahead`` where it goes against that view, else computed now;
+        with ``round_trip`` (None: ``correspondence.round_trip``) its forward-backward
+        disagreement (the flow the pose is solved on: a health figure), else the flow back only
+        for ``correspondence.fb_check_px``."""
         against = against.image_of if against.image_of is not None else against
-        ahead = cur.flow_ahead
-        if ahead is not None and ahead[0]() is against:
-            return ahead[1]
+        if ahead is not None and ahead.serves(against):
+            return ahead.corr
         if round_trip is None:
             round_trip = self.config.correspondence.round_trip
         return self._pair_flow(self.temporal_flow, cur, against, round_trip)
@@ -376,22 +390,21 @@ class StereoOdometry:
         """Whether the depth filter is on (``depth.temporal_gain`` < 1)."""
         return self.config.depth.temporal_gain < 1.0
 
-    def filter_depth(self, cur: View, against: View | None, corr: Correspondences) -> None:
-        """Step 2: with ``against`` (a real frame before ``cur``) and the filter on, replace
-        ``cur.depth`` by its stereo depth filtered along ``corr`` (``cur -> against``) against
-        ``against``'s depth (:func:`vo.depth.filter_depth_along_flow`) and keep the stereo depth
-        in ``cur.stereo_depth``; else ``cur`` keeps (or gets back) its own stereo depth. Tracking
-        ``cur`` again starts from its stereo depth, never the filtered one."""
+    def filter_depth(self, cur: View, against: View | None, corr: Correspondences) -> View:
+        """Step 2: with ``against`` (a real frame before ``cur``) and the filter on, the view of
+        ``cur`` whose depth is its stereo depth filtered along ``corr`` (``cur -> against``)
+        against ``against``'s depth (:func:`vo.depth.filter_depth_along_flow`; the stereo depth
+        kept in ``stereo_depth``); else ``cur`` with its own stereo depth. Filtering always starts
+        from the stereo depth, never from a filtered one."""
         dcfg = self.config.depth
-        if cur.stereo_depth is not None:
-            cur.depth, cur.stereo_depth = cur.stereo_depth, None
+        cur = cur.unfiltered
         if against is None or not self.filters_depth():
-            return
+            return cur
         if cur.from_model or against.from_model:
             raise ValueError("filter_depth: only between real frames (a model view's depth is fused already)")
-        cur.stereo_depth = cur.depth
-        cur.depth = filter_depth_along_flow(cur.stereo_depth, cur.valid, against.depth, against.valid, corr.flow,
-                                            corr.ok, dcfg.temporal_gain, dcfg.temporal_gate_mm)
+        depth = filter_depth_along_flow(cur.depth, cur.valid, against.depth, against.valid, corr.flow,
+                                        corr.ok, dcfg.temporal_gain, dcfg.temporal_gate_mm)
+        return dataclasses.replace(cur, depth=depth, stereo_depth=cur.depth, base=cur)
 
     def residual_problem(self, cur: View, ref: View, corr: Correspondences) -> ResidualProblem:
         """Step 3: what the residuals of eqs. 1-2 compare, given the temporal flow (the pixels
@@ -494,10 +507,11 @@ class StereoOdometry:
         radius = self.config.correspondence.inpaint_px
         if not against.rendered or view.rendered or view.masked is None or radius <= 0:
             return view.image, view.gray
-        if view.flow_input is None:
-            view.flow_input = inpaint_masked(view.image, view.gray, view.masked, radius,
-                                             need_image=not isinstance(self.temporal_flow, DisFlow))
-        return view.flow_input
+        view = view.origin
+        if view not in self._flow_inputs:
+            self._flow_inputs[view] = inpaint_masked(view.image, view.gray, view.masked, radius,
+                                                     need_image=not isinstance(self.temporal_flow, DisFlow))
+        return self._flow_inputs[view]
 
     def _pair_flow(self, estimator, cur: View, against: View, round_trip: bool = False) -> Correspondences:
         """The temporal flow ``cur -> against``; with ``round_trip`` or ``correspondence.fb_check_px``
@@ -519,23 +533,18 @@ class StereoOdometry:
         estimator of the same settings; one RAFT model is not shared between threads)."""
         return self.config.correspondence.backend == "dis"
 
-    def flow_ahead(self, cur: View, against: View) -> None:
-        """Compute the temporal flow ``cur -> against`` now, with an estimator of its own (safe in
-        a read-ahead thread while :meth:`track` runs in another), and keep it on ``cur``: a
-        later :meth:`correspondences` against ``against`` takes it instead of computing it
-        (same settings, same inputs: the same flow bit for bit). Both must be real frames."""
+    def flow_ahead(self, cur: View, against: View) -> AheadFlow:
+        """The temporal flow ``cur -> against`` computed now, with an estimator of its own (safe
+        in a read-ahead thread while :meth:`track` runs in another): given to a later
+        :meth:`track` or :meth:`correspondences` against ``against``, it is taken instead of
+        computing it (same settings, same inputs: the same flow bit for bit). Both must be real
+        frames."""
         if cur.from_model or against.from_model:
             raise ValueError("flow_ahead: only between real frames")
         if self._ahead_flow_estimator is None:
             self._ahead_flow_estimator = make_flow_estimators(self.config.correspondence, self.device)[0]
-        cur.flow_ahead = (weakref.ref(against), self._pair_flow(self._ahead_flow_estimator, cur, against,
-                                                                self.config.correspondence.round_trip))
-
-
-def moved_less_than(relative: np.ndarray, still_mm: float) -> bool:
-    """Whether the ``(4, 4)`` mm motion ``relative`` translated the camera less than ``still_mm``
-    (always True when that is 0 or less: no threshold)."""
-    return still_mm <= 0 or float(np.linalg.norm(relative[:3, 3])) < still_mm
+        return AheadFlow(against, self._pair_flow(self._ahead_flow_estimator, cur, against,
+                                                  self.config.correspondence.round_trip))
 
 
 def cauchy_weights_3d(prob: PoseProblem, T: torch.Tensor, max_depth_mm: float, scale_mm: float) -> torch.Tensor:

@@ -2,7 +2,7 @@
 
 ``solve_pose`` minimises ``f(T) = sum w2 |e2|^2 + w3 |e3|^2`` over the relative pose. The default is
 Levenberg-Marquardt on the analytic Jacobians (``vo.residuals.jacobians``) with left updates
-``T <- exp(d) T``; ``gauss_newton`` is the same without damping; ``lbfgs`` follows the paper
+``T <- exp(d) T``; ``lbfgs`` follows the paper
 (quasi-Newton on the tangent vector with autograd gradients). Normal equations are accumulated and
 solved in float64 whatever the data type.
 """
@@ -148,8 +148,8 @@ def kernels_for(prob: PoseProblem, kernel: str):
 
 
 def solve_pose_lm(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor | None = None,
-                  damping: bool = True, tol: Tolerance = TRACKING) -> SolverResult:
-    """Levenberg-Marquardt (``damping=True``) or Gauss-Newton on the analytic Jacobians.
+                  tol: Tolerance = TRACKING) -> SolverResult:
+    """Levenberg-Marquardt on the analytic Jacobians.
 
     Args:
         prob: the problem (batch of ``B``).
@@ -160,7 +160,7 @@ def solve_pose_lm(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor 
     B = prob.points_cur.shape[0]
     dtype, device = prob.points_cur.dtype, prob.points_cur.device
     T = torch.eye(4, dtype=dtype, device=device).repeat(B, 1, 1) if T_init is None else T_init.to(dtype).clone()
-    lam = torch.full((B,), 1e-4 if damping else 0.0, dtype=torch.float64, device=device)
+    lam = torch.full((B,), 1e-4, dtype=torch.float64, device=device)
     converged = torch.zeros(B, dtype=torch.bool, device=device)
     normal_equations, exp = kernels_for(prob, tol.kernel)
     H, g, cost = normal_equations(T, prob)
@@ -172,14 +172,12 @@ def solve_pose_lm(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor 
         d = torch.where(converged[:, None], torch.zeros_like(d), d)
         T_new = exp(d.to(dtype)) @ T
         H_new, g_new, cost_new = normal_equations(T_new, prob)
-        accept = (cost_new <= cost) | (not damping)
-        accept = accept & ~converged
+        accept = (cost_new <= cost) & ~converged
         T = torch.where(accept[:, None, None], T_new, T)
         H = torch.where(accept[:, None, None], H_new, H)
         g = torch.where(accept[:, None], g_new, g)
         cost = torch.where(accept, cost_new, cost)
-        if damping:
-            lam = torch.where(accept, (lam * 0.3).clamp(min=1e-7), (lam * 10.0).clamp(max=1e6))
+        lam = torch.where(accept, (lam * 0.3).clamp(min=1e-7), (lam * 10.0).clamp(max=1e6))
         small = d.norm(dim=-1) < tol.step
         # the cost no longer decreases measurably (the noise floor of float32 data)
         flat = accept & ((cost_prev - cost) <= tol.cost_rtol * cost_prev)
@@ -223,12 +221,10 @@ def solve_pose(prob: PoseProblem, config: SolverConfig, T_init: torch.Tensor | N
                tol: Tolerance = TRACKING) -> SolverResult:
     """Minimise the weighted objective with the method of ``config`` (eq. 4), stopping at ``tol``."""
     if config.method == "lm":
-        return solve_pose_lm(prob, config, T_init, damping=True, tol=tol)
-    if config.method == "gauss_newton":
-        return solve_pose_lm(prob, config, T_init, damping=False, tol=tol)
+        return solve_pose_lm(prob, config, T_init, tol=tol)
     if config.method == "lbfgs":
         return solve_pose_lbfgs(prob, config, T_init, tol=tol)
-    raise ValueError(f"unknown solver.method '{config.method}' (lm, gauss_newton, lbfgs)")
+    raise ValueError(f"unknown solver.method '{config.method}' (lm, lbfgs)")
 
 
 __all__ = ["Tolerance", "TRACKING", "DECLARATIVE", "SolverResult", "solve_pose", "solve_pose_lm", "solve_pose_lbfgs", "normal_equations", "objective"]

@@ -203,14 +203,10 @@ def _resolved_config(args) -> "SlamConfig":  # noqa: F821
         overrides.append(f"weights.residuals={args.residuals}")
     if getattr(args, "rerun", None):
         overrides.append(f"logging.rerun={args.rerun}")
-    if getattr(args, "spawn", None):
-        overrides.append("logging.spawn=true")
     if getattr(args, "export_map", None):
-        overrides.append("tracking.export_map=true")
+        overrides.append("logging.export_map=true")
     if getattr(args, "mesh", None):
         overrides.append("logging.mesh=true")
-    if getattr(args, "quiet", None):
-        overrides.append("logging.progress=false")
     return load_config(args.config, overrides)
 
 
@@ -220,7 +216,8 @@ def cmd_run(args) -> int:
     from slam.app.runner import exit_status
 
     config = _resolved_config(args)
-    result = run_from_config(args.data, config, args.out, args.frames, overwrite=args.overwrite)
+    result = run_from_config(args.data, config, args.out, args.frames, overwrite=args.overwrite,
+                             progress=not args.quiet, spawn=args.spawn)
     return exit_status(result)
 
 
@@ -228,7 +225,8 @@ def cmd_compare(args) -> int:
     from slam.app.compare import compare
 
     config = _resolved_config(args)
-    return compare(args.data, config, args.out, args.frames, overwrite=args.overwrite)
+    return compare(args.data, config, args.out, args.frames, overwrite=args.overwrite, progress=not args.quiet,
+                   spawn=args.spawn)
 
 
 def cmd_eval(args) -> int:

@@ -58,7 +58,7 @@ def mode_config(config: SlamConfig, mode: str) -> SlamConfig:
 
 
 def compare(data: str | Path, config: SlamConfig, out: str | Path | None = None, frames: str | None = None,
-            overwrite: bool = False) -> int:
+            overwrite: bool = False, progress: bool = True, spawn: bool = False) -> int:
     """Run frame2frame and frame2model with the same settings; write ``comparison.md``,
     ``comparison.json`` and ``comparison.png`` into ``out``. Returns the command's exit code:
     that of the first run that was stopped, else 3 when a run is not a result, else 0."""
@@ -69,7 +69,7 @@ def compare(data: str | Path, config: SlamConfig, out: str | Path | None = None,
     selected = 0
     for mode in MODES:
         result = run_from_config(data, mode_config(config, mode), out_dir / mode, frames, print_summary=False,
-                                 overwrite=overwrite)
+                                 overwrite=overwrite, progress=progress, spawn=spawn)
         rows[mode] = result.metrics
         estimates[mode] = np.stack([r.pose for r in result.records]) if result.records else np.zeros((0, 4, 4))
         selected = result.metrics["selected_frames"]

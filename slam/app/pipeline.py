@@ -27,10 +27,11 @@ from slam.app.interrupts import SignalGate, signal_of
 from slam.app.prefetch import Prefetcher
 from slam.app.progress import Progress
 from slam.app.run_folder import replaced_atomically, write_json_atomically
-from slam.tracking.tracker import FrameResult, Tracker
+from slam.tracking.state import FrameResult
+from slam.tracking.tracker import KnownPoseMapper, Tracker
 from slam.app.tracking_csv import TrackingCsvWriter
 from slam.io.tum import TumStreamWriter
-from vo.odometry import View
+from vo.odometry import AheadFlow, View
 
 log = logging.getLogger("slam")
 
@@ -94,15 +95,21 @@ class Pipeline:
         self.logger = logger
         self.camera = dataset.camera
         self.R1 = _R1_4x4(dataset.R1)
-        if config.tracking.poses == "groundtruth" and dataset.gt_poses is None:
-            raise SlamError(f"{dataset.path}: tracking.poses=groundtruth needs a ground-truth trajectory")
+        if config.analysis.poses == "groundtruth" and dataset.gt_poses is None:
+            raise SlamError(f"{dataset.path}: analysis.poses=groundtruth needs a ground-truth trajectory")
         # thresholds on the motion per frame, at the frames' own rate (a frame selection's too)
         self.frame_rate = dataset.fps
-        self.tracker = Tracker(at_frame_rate(config, self.frame_rate), self.camera, self._initial_rect_pose())
+        self.tracker = self._make_tracker(at_frame_rate(config, self.frame_rate))
         self.timings: dict[str, list[float]] = {}
-        self._ahead_view: Optional[View] = None   # the read-ahead thread's last view (tracking.read_ahead)
+        self._ahead_view: Optional[View] = None   # the read-ahead thread's last view
         self._waiting_for = -1      # the frame the main thread waits for (-1: none)
         self._rect_poses: list[np.ndarray] = []     # estimated rectified T_wc per processed frame
+
+    def _make_tracker(self, config: SlamConfig):
+        """The tracker, or the mapper at the ground-truth poses (``analysis.poses``)."""
+        if config.analysis.poses == "groundtruth":
+            return KnownPoseMapper(config, self.camera, self._initial_rect_pose(), self.dataset.gt_poses @ self.R1.T)
+        return Tracker(config, self.camera, self._initial_rect_pose())
 
     @property
     def odometry(self):
@@ -186,10 +193,10 @@ class Pipeline:
         self._time("total", (time.perf_counter() - t_frame) * 1000.0)
 
     def _read_ahead(self) -> bool:
-        """Whether views are made in the read-ahead thread (``tracking.read_ahead``, and a stereo
-        flow of its own: not one RAFT model shared with the temporal flow)."""
+        """Whether views are made in the read-ahead thread (a stereo flow of its own: not one RAFT
+        model shared with the temporal flow)."""
         odo = self.odometry
-        return self.config.tracking.read_ahead and odo.stereo_flow is not odo.temporal_flow
+        return odo.stereo_flow is not odo.temporal_flow
 
     def _torch_threads(self) -> int:
         """``threads``, or with 0 every core but the read-ahead thread's (torch's default without it)."""
@@ -205,27 +212,28 @@ class Pipeline:
         frame: only where tracking flows against the previous frame."""
         return self._read_ahead() and self.odometry.can_flow_ahead() and self.tracker.flows_against_previous_frame()
 
-    def _read_view(self, k: int) -> tuple[StereoFrame, Optional[View], dict]:
-        """Frame ``k`` and, with ``tracking.read_ahead``, its view and the view's timings (the
-        read-ahead thread runs this, for one frame after another). The view also carries its
-        temporal flow against the view this thread made before (the previous frame's, unless
-        that one could not be read) where tracking flows against the previous frame; tracking
-        takes it only if that view is its reference. Raises what reading the frame raises."""
+    def _read_view(self, k: int) -> tuple[StereoFrame, Optional[View], Optional[AheadFlow], dict]:
+        """Frame ``k`` and, made ahead, its view, the view's temporal flow against the view this
+        thread made before (the previous frame's, unless that one could not be read; where
+        tracking flows against the previous frame, else None) and their timings (the read-ahead
+        thread runs this, for one frame after another; tracking takes the flow only where it
+        goes against its reference). Raises what reading the frame raises."""
         frame = self.dataset.frame(k)
         timings: dict = {}
         if not self._read_ahead():
-            return frame, None, timings
+            return frame, None, None, timings
         view = self._make_view(frame, timings)
         previous, self._ahead_view = self._ahead_view, view
+        ahead = None
         if previous is not None and self._flow_ahead() and self._waiting_for != k:
             t0 = time.perf_counter()
-            self.odometry.flow_ahead(view, previous)
+            ahead = self.odometry.flow_ahead(view, previous)
             timings["flow_ahead"] = (time.perf_counter() - t0) * 1000.0
-        return frame, view, timings
+        return frame, view, ahead, timings
 
     def _make_view(self, frame: StereoFrame, timings: dict) -> View:
-        """Stereo depth (or the ground-truth depth of ``depth.source: groundtruth``) of ``frame``."""
-        return frame_view(self.odometry, frame, self.dataset.path, timings)
+        """Stereo depth (or the ground-truth depth of ``analysis.depth_source``) of ``frame``."""
+        return frame_view(self.odometry, frame, self.dataset.path, timings, self.config.analysis.depth_source)
 
     def _step(self, k: int, reader: Prefetcher) -> FrameRecord:
         """Read frame ``k``, have the tracker track it, log it; a frame that cannot be read makes a
@@ -236,7 +244,7 @@ class Pipeline:
             t0 = time.perf_counter()
             self._waiting_for = k
             try:
-                frame, view, timings = reader.get(k)   # read ahead in a thread: the time spent waiting for it
+                frame, view, ahead, timings = reader.get(k)   # read ahead in a thread: the time spent waiting
             finally:
                 self._waiting_for = -1
             self._time("read", (time.perf_counter() - t0) * 1000.0)
@@ -248,19 +256,18 @@ class Pipeline:
             view = self._make_view(frame, timings)
         for stage, ms in timings.items():
             self._time(stage, ms)
-        gt_pose = frame.gt_pose @ self.R1.T if self.tracker.known_poses else None
-        result = self.tracker.track(k, view, gt_pose)
+        result = self.tracker.track(k, view, ahead)
         for stage, ms in result.timings:
             self._time(stage, ms)
         track = result.track
-        pose = frame.gt_pose if self.tracker.known_poses else result.pose @ self.R1
+        pose = result.pose @ self.R1
         self._rect_poses.append(np.asarray(result.pose))
         record = FrameRecord(index, stamp, pose, result.failed, result.reason, result.reference,
                              track.iterations if track is not None else 0,
                              track.cost if track is not None else float("nan"), dict(result.health),
                              result.reference_position, result.flagged)
         record.health["nees"] = self._nees(k, result)
-        self._log(k, frame, view, track, result.pose, record)
+        self._log(k, frame, result.view or view, track, result.pose, record)
         return record
 
     def _nees(self, k: int, result: FrameResult) -> float:

@@ -5,8 +5,8 @@ RAFT) checkpoint files it loads and the frames it selects. ``provenance(config, 
 each of them by a digest, so that a later run can tell whether a finished run folder still holds
 the result it would compute (``slam evaluate`` re-runs only the tasks whose provenance differs):
 
-* ``config_sha256``: SHA-256 of the resolved configuration as YAML, without the keys that only
-  change what is shown (``logging.progress``, ``logging.spawn``);
+* ``config_sha256``: SHA-256 of the resolved configuration as YAML (every value, the fixed ones
+  and the analysis switches included);
 * ``version``: the package's version, and in a git checkout its commit, with a digest of the
   uncommitted changes to the code (``vo/``, ``mapping/``, ``slam/``) when there are any;
 * ``checkpoints``: SHA-256 of each checkpoint file tracking loads (none with constant weights);
@@ -14,7 +14,7 @@ the result it would compute (``slam evaluate`` re-runs only the tasks whose prov
 """
 from __future__ import annotations
 
-import copy
+import dataclasses
 import functools
 import hashlib
 import subprocess
@@ -23,20 +23,15 @@ from pathlib import Path
 
 import yaml
 
-from slam.config import SlamConfig, to_dict
+from slam.config import SlamConfig
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CODE_DIRS = ("vo", "mapping", "slam")
-#: keys of the configuration that change what a run shows, not what it computes
-DISPLAY_ONLY = (("logging", "progress"), ("logging", "spawn"))
 
 
 def config_digest(config: SlamConfig) -> str:
-    """SHA-256 of the resolved configuration (without :data:`DISPLAY_ONLY` keys)."""
-    data = copy.deepcopy(to_dict(config))
-    for section, key in DISPLAY_ONLY:
-        data.get(section, {}).pop(key, None)
-    return hashlib.sha256(yaml.safe_dump(data, sort_keys=True).encode()).hexdigest()
+    """SHA-256 of the resolved configuration."""
+    return hashlib.sha256(yaml.safe_dump(dataclasses.asdict(config), sort_keys=True).encode()).hexdigest()
 
 
 @functools.lru_cache(maxsize=None)

@@ -297,18 +297,20 @@ class RerunLogger:
     """Logs a SLAM run to a rerun recording (``.rrd``) and/or a spawned viewer.
 
     Args:
-        config: ``slam.config.LoggingConfig`` (``rerun`` path, ``spawn``, ``map_every``).
+        config: ``slam.config.LoggingConfig`` (``rerun`` path, ``map_every``, ``rerun_every``).
         camera: the rectified ``StereoCamera`` (intrinsics of the logged images).
         name: the recording's name (the sequence).
         gt_poses: ``(N, 4, 4)`` ground-truth ``T_wc`` of the original left camera, mm, of the
             selected frames (index ``k``), or None.
         R1: ``(3, 3)`` rectifying rotation of the left camera (kept for reference; positions of the
             original and rectified cameras coincide).
+        spawn: also open the rerun viewer.
     """
 
     def __init__(self, config, camera, name: str = "endoslam", gt_poses: Optional[np.ndarray] = None,
-                 R1: Optional[np.ndarray] = None):
+                 R1: Optional[np.ndarray] = None, spawn: bool = False):
         self.config = config
+        self.spawn = bool(spawn)
         self.camera = camera
         self.name = str(name)
         self.gt_poses = None if gt_poses is None else np.asarray(gt_poses, dtype=np.float64)
@@ -325,7 +327,7 @@ class RerunLogger:
         self.path: Optional[Path] = Path(config.rerun) if getattr(config, "rerun", "") else None
         # a file alone gathers a few seconds of rows per chunk (each chunk carries ~1 kB of schema:
         # per frame and series at the SDK's 0.2 s); a viewer keeps the SDK's low latency
-        batcher = None if getattr(config, "spawn", False) else rr.ChunkBatcherConfig(flush_tick=FILE_FLUSH_TICK_S)
+        batcher = None if self.spawn else rr.ChunkBatcherConfig(flush_tick=FILE_FLUSH_TICK_S)
         self.rec = rr.RecordingStream("endoslam", recording_id=uuid.uuid4(), batcher_config=batcher)
         if not self._connect(make_blueprint()):
             # nothing would ever read the data: do not buffer a whole run in memory
@@ -346,7 +348,7 @@ class RerunLogger:
     # -------------------------------------------------------------------------------- sinks
     def _connect(self, blueprint: rrb.Blueprint) -> bool:
         """Attach the sinks (viewer and/or file); False when there is none."""
-        spawn = bool(getattr(self.config, "spawn", False))
+        spawn = self.spawn
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
         if spawn:

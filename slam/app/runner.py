@@ -27,23 +27,26 @@ def default_out_dir(data: str | Path, mode: str) -> Path:
     return Path("runs") / f"{path.stem if path.is_file() else path.name}_{mode}"
 
 
-def make_logger(config: SlamConfig, dataset):
-    """A rerun logger when asked for, else None (rerun is then not imported at all)."""
-    if not (config.logging.rerun or config.logging.spawn):
+def make_logger(config: SlamConfig, dataset, spawn: bool = False):
+    """A rerun logger when a recording or the viewer (``spawn``) is asked for, else None (rerun
+    is then not imported at all)."""
+    if not (config.logging.rerun or spawn):
         return None
     from slam.app.rerun_log import RerunLogger
 
     return RerunLogger(config.logging, dataset.camera, name=dataset.path.name,
-                       gt_poses=dataset.gt_poses, R1=dataset.R1)
+                       gt_poses=dataset.gt_poses, R1=dataset.R1, spawn=spawn)
 
 
 def run_from_config(data: str | Path, config: SlamConfig, out: str | Path | None = None,
                     frames: str | None = None, print_summary: bool = True,
-                    on_frame: Callable[[int], None] | None = None, overwrite: bool = False) -> RunResult:
+                    on_frame: Callable[[int], None] | None = None, overwrite: bool = False,
+                    progress: bool = True, spawn: bool = False) -> RunResult:
     """Run one sequence end to end with a resolved config; ``metrics.json`` records the run's
     provenance (``slam.app.provenance``) and ``run.log`` what the run logged. ``on_frame``: see
     ``Pipeline.run``. A folder holding an earlier run is refused unless ``overwrite``, which
-    removes that run's files once the data is open (``slam.app.run_folder``)."""
+    removes that run's files once the data is open (``slam.app.run_folder``). ``progress``:
+    show it (``slam.app.progress``); ``spawn``: open the rerun viewer."""
     from slam.io.datasets import open_dataset
     from slam.app.provenance import provenance
 
@@ -56,9 +59,9 @@ def run_from_config(data: str | Path, config: SlamConfig, out: str | Path | None
     clear_run_files(out_dir)
     with run_log(out_dir / RUN_LOG):
         log.info("slam run %s -> %s (%s, %d frames)", dataset.path, out_dir, config.tracking.mode, len(dataset))
-        logger = make_logger(config, dataset)
+        logger = make_logger(config, dataset, spawn)
         pipeline = Pipeline(config, dataset, out_dir, logger=logger, provenance=provenance(config, frames))
-        result = pipeline.run(progress=config.logging.progress, on_frame=on_frame)
+        result = pipeline.run(progress=progress, on_frame=on_frame)
         result.files["log"] = str(out_dir / RUN_LOG)
         summary = summary_text(result)
         log.info("%s", summary)

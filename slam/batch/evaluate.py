@@ -30,7 +30,7 @@ from slam.batch.reports import REPORTS
 from slam.batch.runner import BatchOptions, run_batch
 from slam.batch.tables import METRIC_KEYS, fmt, plot, scenarios_of, write_csv
 from slam.batch.tasks import MAP_ACCURACY, METRICS, MapAccuracySpec, RunTask, read_json
-from slam.config import SlamConfig, apply_override, load_config, validate
+from slam.config import SlamConfig, load_config, with_overrides
 from slam.errors import ConfigError
 
 DEFAULT_CONFIGS = {"folder": None, "stereomis": protocols.CONFIGS / "stereomis_frame2frame.yaml",
@@ -94,27 +94,18 @@ def sweep_folder(overrides: list[str]) -> str:
 
 def method_config(base: SlamConfig, sweep: list[str], mode: str, cpus_per_task: int) -> SlamConfig:
     """The resolved config of one swept combination and mode: the base with the swept values and
-    the mode, ``threads`` made explicit (the CPUs a task gets when the config leaves them at 0),
-    no progress bar."""
-    config = copy.deepcopy(base)
-    for item in sweep:
-        try:
-            apply_override(config, item)
-        except ConfigError as err:
-            raise ConfigError(f"--sweep {item}: {str(err).removeprefix('--set: ')}") from None
-    config.tracking.mode = mode
+    the mode, ``threads`` made explicit (the CPUs a task gets when the config leaves them at 0)."""
     try:
-        validate(config)
+        config = with_overrides(base, [*sweep, f"tracking.mode={mode}"], source="--sweep")
     except ConfigError as err:
-        raise ConfigError(f"--sweep {' '.join(sweep)}: {err}" if sweep else str(err)) from None
+        raise ConfigError(f"--sweep {' '.join(sweep)}: {str(err).removeprefix('--sweep: ')}" if sweep
+                          else str(err)) from None
     for section, key in PATH_KEYS:       # a worker elsewhere, or in another folder, finds them too
         part = getattr(config, section)
         if getattr(part, key):
             setattr(part, key, str(Path(getattr(part, key)).expanduser().resolve()))
     if config.threads == 0:
         config.threads = cpus_per_task
-    config.logging.progress = False
-    config.logging.spawn = False
     return config
 
 
@@ -167,7 +158,7 @@ def build_tasks(req: EvaluateRequest, out: Path) -> tuple[list[RunTask], list[di
     config_path = req.config or DEFAULT_CONFIGS[req.protocol]
     overrides = list(req.overrides)
     if req.protocol == "scared" and not req.no_map:
-        overrides = ["tracking.export_map=true", *overrides]
+        overrides = ["logging.export_map=true", *overrides]
     base = load_config(config_path, overrides)
     sweeps = parse_sweeps(req.sweeps)
     if req.frames:

@@ -118,7 +118,7 @@ def run_task(task: RunTask, report: Report) -> dict:
         with captured_output(stray):    # what native code prints; the run's own log is run.log
             check_sequence(task)
             result = run_from_config(task.data, task.config, out, task.frames, print_summary=False,
-                                     on_frame=_throttled(report), overwrite=True)
+                                     on_frame=_throttled(report), overwrite=True, progress=False)
     except KeyboardInterrupt:
         return {"status": "interrupted", "message": "interrupted", "seconds": time.perf_counter() - t0}
     except Exception as err:  # noqa: BLE001 - one bad sequence is one error row

@@ -24,23 +24,24 @@ import random
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
-import yaml
 
 from mapping import MapConfig
-from slam.errors import ConfigError, DataError, SlamError
 from slam.app.frame_view import frame_view
-from slam.io.rectification import original_to_rect_pose
 from slam.app.progress import on_terminal
+from slam.config import AnalysisConfig
+from slam.errors import ConfigError, DataError, SlamError
+from slam.io.rectification import original_to_rect_pose
 from slam.synth.appearance import appearance_tag, parse_appearance
 from slam.synth.generate import SCENARIOS
-from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, WeightsConfig
+from vo.config import CorrespondenceConfig, DepthConfig, SolverConfig, VOConfig, WeightsConfig
 from vo.ddn import declarative_pose
 from vo.geometry import backproject
 from vo.lie import se3_exp, se3_log
-from vo.odometry import StereoOdometry, View, VOConfig
+from vo.odometry import StereoOdometry, View
 from vo.residuals import PoseProblem
 from vo.weights import (IN_CHANNELS, INPUT_VERSION, WeightInputs, WeightNetworks, load_weight_networks,
                         network_inputs, sample_weights)
@@ -107,7 +108,7 @@ class TrainDataConfig:
     pixels_per_pair: int = 4096
     breathing_follows_tissue: float = 0.0
     appearance: str = ""
-    reference: str = "frame"
+    reference: Literal["frame", "model"] = "frame"
     min_model_coverage: float = 0.95
     chain_length: int = 1
     workers: int = 0
@@ -140,7 +141,7 @@ class OptimConfig:
     lr: float = 3e-4
     patience: int = 6
     val_fraction: float = 0.2
-    split: str = "sequence"
+    split: Literal["sequence", "pair"] = "sequence"
     seed: int = 0
     grad_tol: float = 1e-3
     threads: int = 0
@@ -151,7 +152,7 @@ class OptimConfig:
 class TrainConfig:
     """Everything ``slam train`` needs."""
 
-    residuals: str = "2d3d"
+    residuals: Literal["2d3d", "2d", "3d"] = "2d3d"
     downscale: int = 8
     base: int = 16
     # the networks' input layout (vo.weights.network_inputs); 1 reproduces the shipped 3D checkpoint
@@ -165,37 +166,29 @@ class TrainConfig:
     map: MapConfig = field(default_factory=MapConfig)    # the model references' map (data.reference: model)
     # the declarative layer's forward solve (its tolerance: vo.solver.DECLARATIVE)
     solver: SolverConfig = field(default_factory=lambda: SolverConfig(max_iters=25))
+    # what the analysis tools switch (slam.config.AnalysisConfig): the generator's exact depth
+    # (depth_source), the inpainting and exposure matching of the shipped 3D checkpoint's recipe
+    analysis: AnalysisConfig = field(default_factory=AnalysisConfig)
 
 
 def load_train_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:
     """Defaults, then the YAML file, then ``key=value`` overrides, validated like the run config."""
-    from slam.config import _merge, apply_override
+    from slam.config import REMOVED, apply_analysis, override_tree, read_yaml
+    from slam.schema import parse_into, rebuild
 
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: training config not found")
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError:
-        raise ConfigError(f"{path}: not valid YAML") from None
     cfg = TrainConfig()
-    _merge(cfg, data, "", str(path))
+    parse_into(cfg, read_yaml(path), str(path), REMOVED)
     for item in overrides or []:
-        apply_override(cfg, item)
-    if cfg.residuals not in ("2d3d", "2d", "3d"):
-        raise ConfigError(f"{path}: 'residuals' must be one of 2d3d, 2d, 3d")
-    if cfg.data.reference not in ("frame", "model"):
-        raise ConfigError(f"{path}: 'data.reference' must be frame or model")
-    try:
-        cfg.map.validate()
-    except ValueError as err:
-        raise ConfigError(f"{path}: {err}") from None
+        parse_into(cfg, override_tree(item), "--set", REMOVED)
+    cfg = rebuild(cfg)
+    apply_analysis(cfg)
     try:
         parse_appearance(cfg.data.appearance, 0)
     except DataError as err:
         raise ConfigError(f"{path}: data.appearance: {err}") from None
-    if cfg.optim.split not in ("sequence", "pair"):
-        raise ConfigError(f"{path}: 'optim.split' must be sequence or pair")
     if not isinstance(cfg.data.chain_length, int) or cfg.data.chain_length < 1:
         raise ConfigError(f"{path}: 'data.chain_length' must be a whole number >= 1")
     if cfg.data.chain_length > 1 and cfg.data.reference != "frame":
@@ -349,6 +342,7 @@ def _cache_key(cfg: TrainConfig, path: Path) -> str:
             data.pop(name)
     depth = asdict(cfg.depth)
     depth.pop("temporal_still_mm")      # the pair cache filters every frame (tracking decides per frame)
+    depth["source"] = cfg.analysis.depth_source
     if cfg.depth.temporal_gain >= 1.0:
         for name in ("temporal_gain", "temporal_gate_mm"):
             depth.pop(name)
@@ -390,13 +384,13 @@ def build_pair_samples(path: Path, cfg: TrainConfig) -> list[dict]:
                 if k <= m:
                     raise AssertionError(f"{path}: frame {k} asked for after frame {m} (pairs are sorted)")
                 for n in range(m + 1, k + 1):
-                    v = frame_view(odo, dataset.frame(n), path)
+                    v = frame_view(odo, dataset.frame(n), path, depth_source=cfg.analysis.depth_source)
                     if prev is not None:
-                        odo.filter_depth(v, prev, odo.correspondences(v, prev, round_trip=False))
+                        v = odo.filter_depth(v, prev, odo.correspondences(v, prev, round_trip=False))
                     views[n] = prev = v
                 last_filtered[:] = [k, prev]
             else:
-                views[k] = frame_view(odo, dataset.frame(k), path)   # depth.source: stereo or the generator's
+                views[k] = frame_view(odo, dataset.frame(k), path, depth_source=cfg.analysis.depth_source)
         return views[k]
 
     model = ModelReference(cfg, odo, dataset) if cfg.data.reference == "model" else None
@@ -467,7 +461,7 @@ class ModelReference:
 
     def __init__(self, cfg: TrainConfig, odo: StereoOdometry, dataset):
         from mapping import SurfelMap
-        from slam.tracking.tracker import FusionExposure
+        from slam.tracking.map_fusion import FusionExposure
 
         self.cfg, self.odo = cfg, odo
         self.map = SurfelMap(cfg.map)
@@ -481,7 +475,7 @@ class ModelReference:
         """The model view at frame ``i``'s pose after fusing frames ``0..i`` (``view(k)`` gives frame
         ``k``'s view; ``i`` must not decrease between calls), or None where the render covers
         less than ``data.min_model_coverage`` of frame ``i``'s valid pixels."""
-        from slam.tracking.tracker import model_coverage
+        from slam.tracking.references import model_coverage
 
         if self.last is not None and self.last[0] == i:
             return self.last[1]     # the map has not changed since: the same render

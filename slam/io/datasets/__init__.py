@@ -18,7 +18,6 @@ _EXPORTS = {
     "READERS": "slam.io.datasets.registry",
     "detect_layout": "slam.io.datasets.registry",
     "open_dataset": "slam.io.datasets.registry",
-    "validate_config": "slam.io.datasets.registry",
     "parse_frames": "slam.io.datasets.selection",
 }
 

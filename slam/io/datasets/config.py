@@ -1,7 +1,15 @@
 """Configuration of the dataset readers (one concern: how frames are read and prepared)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Literal
+
+LAYOUTS = ("stereomis", "stereomis_raw", "scared", "plain", "frames", "video")
+
+
+def fixed(why: str, default):
+    """A field a person does not set (``slam.schema``): a constant of the readers."""
+    return field(default=default, metadata={"fixed": why})
 
 
 @dataclass
@@ -36,15 +44,27 @@ class DataConfig:
             on the motion per frame are scaled by it (``slam.config.at_frame_rate``).
     """
 
-    layout: str = "auto"
+    layout: Literal["auto", "stereomis", "stereomis_raw", "scared", "plain", "frames", "video"] = "auto"
     calibration: str = ""
-    rectified: str = "auto"
-    stereo_layout: str = "auto"
-    rectify_mode: str = "full"
+    rectified: Literal["auto", "yes", "no"] = "auto"
+    stereo_layout: Literal["auto", "top-bottom", "side-by-side"] = "auto"
+    rectify_mode: Literal["full", "pseudo"] = "full"
     width: int = 0
     height: int = 0
     use_mask_files: bool = True
-    specular_threshold: float = 0.96
-    specular_dilate_px: int = 3
-    dark_threshold: float = 0.04
     fps: float = 0.0
+    specular_threshold: float = fixed("near-saturated pixels are the light's mirror image", 0.96)
+    specular_dilate_px: int = fixed("the highlight's halo", 3)
+    dark_threshold: float = fixed("a few grey levels of signal", 0.04)
+
+    def __post_init__(self):
+        def need(ok: bool, message: str) -> None:
+            if not ok:
+                raise ValueError(message)
+
+        need(self.width >= 0 and self.height >= 0, "data.width/height must be >= 0 (0 = native size)")
+        need((self.width == 0) == (self.height == 0), "data.width and data.height: set both or neither")
+        need(self.fps >= 0, "data.fps must be >= 0 (0 = from the data)")
+        need(0 < self.specular_threshold, "data.specular_threshold must be > 0 (> 1 disables)")
+        need(0 <= self.dark_threshold < 1, "data.dark_threshold must be in [0, 1) (0 disables)")
+        need(self.specular_dilate_px >= 0, "data.specular_dilate_px must be >= 0")

@@ -45,30 +45,6 @@ LOOKED_FOR = ("video_frames/ (StereoMIS)", "endoscope_calibration.yaml + data/rg
               "*.mp4 + StereoCalibration.ini (StereoMIS raw)", "a stereo video file + a calibration file")
 
 
-def validate_config(config: DataConfig) -> None:
-    """Raise ConfigError for values the readers cannot use."""
-    if config.layout != "auto" and config.layout not in READERS:
-        raise ConfigError(f"data.layout: unknown layout '{config.layout}' (expected auto, {', '.join(READERS)})")
-    if config.rectified not in ("auto", "yes", "no"):
-        raise ConfigError(f"data.rectified: expected auto, yes or no, got '{config.rectified}'")
-    if config.rectify_mode not in ("full", "pseudo"):
-        raise ConfigError(f"data.rectify_mode: expected full or pseudo, got '{config.rectify_mode}'")
-    for key in ("width", "height"):
-        value = getattr(config, key)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise ConfigError(f"data.{key}: expected an integer >= 0 (0 = native size), got {value!r}")
-    if not 0 < float(config.specular_threshold):
-        raise ConfigError(f"data.specular_threshold: expected a value in (0, 1] (> 1 disables), got {config.specular_threshold}")
-    if not 0 <= float(config.dark_threshold) < 1:
-        raise ConfigError(f"data.dark_threshold: expected a value in [0, 1) (0 disables), got {config.dark_threshold}")
-    if int(config.specular_dilate_px) < 0:
-        raise ConfigError(f"data.specular_dilate_px: expected >= 0, got {config.specular_dilate_px}")
-    if not float(config.fps) >= 0:
-        raise ConfigError(f"data.fps: expected a frame rate >= 0 (0 = from the data), got {config.fps}")
-    if config.stereo_layout not in ("auto", "top-bottom", "side-by-side"):
-        raise ConfigError(f"data.stereo_layout: expected auto, top-bottom or side-by-side, got '{config.stereo_layout}'")
-
-
 def detect_layout(path: str | Path) -> str:
     """The layout name of a sequence folder; DataError naming the folder if none matches."""
     path = Path(path)
@@ -90,7 +66,6 @@ def detect_layout(path: str | Path) -> str:
 def open_dataset(path: str | Path, config: Optional[DataConfig] = None) -> StereoDataset:
     """Open the sequence in ``path`` with the reader of ``config.layout`` (``auto``: detected)."""
     config = config or DataConfig()
-    validate_config(config)
     path = Path(path)
     layout = detect_layout(path) if config.layout == "auto" else config.layout
     if config.layout != "auto" and not path.is_dir() and not (layout == "video" and path.is_file()):

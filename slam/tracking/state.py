@@ -1,0 +1,79 @@
+"""What the tracker knows of the sequence between two frames (:class:`TrackState`) and what it
+made of one frame (:class:`FrameResult`).
+
+Poses are those of the rectified left camera (``T_wc``, mm; :mod:`slam.tracking.poses`).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from slam.tracking.loop_closure import LoopEvent
+from vo.odometry import TrackResult, View
+
+
+@dataclass
+class TrackState:
+    """The last tracked frame: its pose, view and sequence position, and the motion that led to
+    it (``velocity``: the relative pose from the frame before, the still-camera rules' input).
+    ``last_view`` is None before the first frame."""
+
+    pose: np.ndarray
+    last_view: Optional[View] = None
+    position: int = -1
+    velocity: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+
+@dataclass
+class FrameResult:
+    """What the tracker made of one frame.
+
+    Attributes:
+        pose: ``(4, 4)`` ``T_wc`` of the rectified left camera, mm (a failed frame keeps the
+            last good pose).
+        failed: the frame's pose could not be trusted (``reason`` says why).
+        flagged: frame2model's cross-check (``health.cross_check``) found the model view's and
+            the last frame's estimates in disagreement, or the model view's estimate failed (the
+            frame reports the better-supported estimate), or the reported pose is uncertain
+            (``health.flag_mm``); a flagged frame is not fused (``reason`` says why).
+        reason: '' for a good frame.
+        reference: what the frame was tracked against: ``first`` (the first frame),
+            ``previous_frame``, ``keyframe`` (an earlier frame, ``tracking.keyframe_gap``),
+            ``model`` (the map's view) or ``groundtruth`` (``tracking.poses: groundtruth``).
+        track: the VO core's result (flow, weight maps, solver figures), None without a solve.
+        keyframe: the sequence position of the keyframe the frame was tracked against, else None.
+        reference_position: the sequence position of the frame at whose pose the reference sits
+            (the keyframe, or the last tracked frame for the previous frame and the model view).
+        health: per-frame figures of how well the frame was tracked (``slam.tracking.health.FIGURES``:
+            supported pixels, residuals against their running medians, the covariance's
+            spread; ``model_coverage`` against the map).
+        covariance: ``(6, 6)`` covariance of the relative pose to the reference (mm and rad,
+            translation first, left perturbation), where one is estimated; None otherwise.
+        timings: ``(stage, ms)`` of the work done for the frame, in order (a stage may repeat).
+        loop: the loop candidate found at the frame (``graph.loop_closure``), else None.
+        view: the frame's view as tracked (its depth filtered where it was), None where it was
+            not tracked.
+    """
+
+    pose: np.ndarray
+    failed: bool = False
+    flagged: bool = False
+    reason: str = ""
+    reference: str = ""
+    track: Optional[TrackResult] = None
+    keyframe: Optional[int] = None
+    reference_position: Optional[int] = None
+    health: dict = field(default_factory=dict)
+    covariance: Optional[np.ndarray] = None
+    timings: list = field(default_factory=list)
+    loop: Optional[LoopEvent] = None
+    view: Optional[View] = None
+
+    def time(self, stage: str, since: float) -> None:
+        """Record ``stage`` as the time elapsed since ``since`` (``time.perf_counter()``)."""
+        self.timings.append((stage, (time.perf_counter() - since) * 1000.0))
+
+
