@@ -69,6 +69,36 @@ class RunResult:
     files: dict = field(default_factory=dict)
 
 
+class NoRecording:
+    """A run without a rerun recording: frames are not logged."""
+
+    path = None
+
+    def log_frame(self, *args, **kwargs) -> None:
+        """(Nothing recorded.)"""
+
+
+class FlowAhead:
+    """The read-ahead thread computes each view's temporal flow against the view it made before
+    (where tracking flows against the previous frame, with a classical backend)."""
+
+    def __init__(self, odometry):
+        self.odometry = odometry
+
+    def __call__(self, view: View, previous: View, timings: dict) -> AheadFlow:
+        t0 = time.perf_counter()
+        ahead = self.odometry.flow_ahead(view, previous)
+        timings["flow_ahead"] = (time.perf_counter() - t0) * 1000.0
+        return ahead
+
+
+class NoFlowAhead:
+    """Every temporal flow is computed where tracking needs it."""
+
+    def __call__(self, view: View, previous: View, timings: dict) -> None:
+        return None
+
+
 def _R1_4x4(R1: np.ndarray) -> np.ndarray:
     M = np.eye(4)
     M[:3, :3] = R1
@@ -92,7 +122,7 @@ class Pipeline:
         self.provenance = provenance
         self.dataset = dataset
         self.out_dir = Path(out_dir)
-        self.logger = logger
+        self.logger = logger if logger is not None else NoRecording()
         self.camera = dataset.camera
         self.R1 = _R1_4x4(dataset.R1)
         if config.analysis.poses == "groundtruth" and dataset.gt_poses is None:
@@ -102,6 +132,7 @@ class Pipeline:
         self.tracker = self._make_tracker(at_frame_rate(config, self.frame_rate))
         self.timings: dict[str, list[float]] = {}
         self._ahead_view: Optional[View] = None   # the read-ahead thread's last view
+        self._ahead_flow = NoFlowAhead()          # what the read-ahead thread does for the flow (run)
         self._waiting_for = -1      # the frame the main thread waits for (-1: none)
         self._rect_poses: list[np.ndarray] = []     # estimated rectified T_wc per processed frame
 
@@ -151,8 +182,10 @@ class Pipeline:
         writer = TumStreamWriter(self.out_dir / "trajectory.txt")
         health_csv = TrackingCsvWriter(self.out_dir / "tracking.csv")
         bar = Progress(n, "track", enabled=progress)
+        on_frame = on_frame or (lambda done: None)
         self._ahead_view = None
-        reader = Prefetcher(self._read_view, n)
+        self._ahead_flow = FlowAhead(self.odometry) if self._flow_ahead() else NoFlowAhead()
+        reader = Prefetcher(self._read_view, n, enabled=self._read_ahead())
         threads_before = torch.get_num_threads()
         torch.set_num_threads(self._torch_threads())
         t_start = time.perf_counter()
@@ -163,8 +196,7 @@ class Pipeline:
                         self._track_frame(k, reader, writer, health_csv, result)
                         bar.update(1, fps=f"{(k + 1) / max(time.perf_counter() - t_start, 1e-9):.1f}",
                                    fail=sum(r.failed for r in result.records), flag=sum(r.flagged for r in result.records))
-                        if on_frame is not None:
-                            on_frame(k + 1)
+                        on_frame(k + 1)
             except KeyboardInterrupt as err:
                 result.interrupted, result.signum = True, signal_of(err)
                 log.warning("interrupted after %d frames: writing the results (a second Ctrl-C skips the map, "
@@ -212,23 +244,20 @@ class Pipeline:
         frame: only where tracking flows against the previous frame."""
         return self._read_ahead() and self.odometry.can_flow_ahead() and self.tracker.flows_against_previous_frame()
 
-    def _read_view(self, k: int) -> tuple[StereoFrame, Optional[View], Optional[AheadFlow], dict]:
-        """Frame ``k`` and, made ahead, its view, the view's temporal flow against the view this
-        thread made before (the previous frame's, unless that one could not be read; where
-        tracking flows against the previous frame, else None) and their timings (the read-ahead
-        thread runs this, for one frame after another; tracking takes the flow only where it
-        goes against its reference). Raises what reading the frame raises."""
+    def _read_view(self, k: int) -> tuple[StereoFrame, View, Optional[AheadFlow], dict]:
+        """Frame ``k``, its view, the view's temporal flow against the view made before (the
+        previous frame's, unless that one could not be read; computed ahead where tracking flows
+        against the previous frame and the main thread is not waiting for this frame, else None)
+        and their timings. The read-ahead thread runs this, for one frame after another (the main
+        thread where views are not made ahead); tracking takes the flow only where it goes
+        against its reference. Raises what reading the frame raises."""
         frame = self.dataset.frame(k)
         timings: dict = {}
-        if not self._read_ahead():
-            return frame, None, None, timings
         view = self._make_view(frame, timings)
         previous, self._ahead_view = self._ahead_view, view
         ahead = None
-        if previous is not None and self._flow_ahead() and self._waiting_for != k:
-            t0 = time.perf_counter()
-            ahead = self.odometry.flow_ahead(view, previous)
-            timings["flow_ahead"] = (time.perf_counter() - t0) * 1000.0
+        if previous is not None and self._waiting_for != k:
+            ahead = self._ahead_flow(view, previous, timings)
         return frame, view, ahead, timings
 
     def _make_view(self, frame: StereoFrame, timings: dict) -> View:
@@ -251,9 +280,6 @@ class Pipeline:
         except DataError as err:
             self._rect_poses.append(self.tracker.pose)
             return FrameRecord(index, stamp, self.tracker.pose @ self.R1, True, f"unreadable frame: {err}")
-        if view is None:
-            timings = {}
-            view = self._make_view(frame, timings)
         for stage, ms in timings.items():
             self._time(stage, ms)
         result = self.tracker.track(k, view, ahead)
@@ -288,10 +314,9 @@ class Pipeline:
         return None if ref is None or ref < 0 else int(self.dataset.indices[ref])
 
     def _log(self, k, frame, view, track, pose_rect, record) -> None:
-        if self.logger is not None:
-            t0 = time.perf_counter()
-            self.logger.log_frame(k, frame, view, track, record, self.map, self.odometry.camera, pose_rect)
-            self._time("logging", (time.perf_counter() - t0) * 1000.0)
+        t0 = time.perf_counter()
+        self.logger.log_frame(k, frame, view, track, record, self.map, self.odometry.camera, pose_rect)
+        self._time("logging", (time.perf_counter() - t0) * 1000.0)
 
     # --------------------------------------------------------------------------------------
     def _finish(self, result: RunResult, wall_s: float, gate: SignalGate) -> None:
@@ -415,14 +440,14 @@ class Pipeline:
                 outputs.append(("mesh", self._write_mesh))
         if len(estimate) >= 2:
             outputs.append(("plot", self._write_plot))
-        if self.logger is not None:
+        if not isinstance(self.logger, NoRecording):
             outputs.append(("recording", self._end_recording))
         for i, (name, write) in enumerate(outputs):
             try:
                 with gate.interruptible():
                     write(result, estimate, online)
             except KeyboardInterrupt:
-                if self.logger is not None and hasattr(self.logger, "close"):
+                if hasattr(self.logger, "close"):
                     self.logger.close()
                 return [n for n, _ in outputs[i:]]
         return []
