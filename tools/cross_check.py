@@ -57,16 +57,16 @@ def run_open_loop(job: dict) -> dict:
     cfg = load_config(None, ["tracking.mode=frame2model", "health.flag_mm=1e9", "threads=1"])
     ds = open_dataset(data, cfg.data)
     pipe = Pipeline(cfg, ds, Path(job["out"]) / "runs" / f"{data.name}_open")
-    tracker = pipe.tracker
+    acceptance = pipe.tracker.acceptance
     seen: list[dict] = []
 
-    def recording_check(estimate, result):      # (records both estimates, reports the model view's)
-        relative_model = np.linalg.inv(tracker.pose) @ result.pose
-        seen.append({"position": tracker.position + 1, "model": relative_model, "frame": estimate.estimate.relative,
+    def recording_check(estimate, result, state):      # (records both estimates, reports the model view's)
+        relative_model = np.linalg.inv(state.pose) @ result.pose
+        seen.append({"position": state.position + 1, "model": relative_model, "frame": estimate.estimate.relative,
                      "cov_model": result.covariance, "cov_frame": estimate.estimate.covariance})
         return result.pose
 
-    tracker._cross_check = recording_check
+    acceptance.combine = recording_check
     res = pipe.run(progress=False)
     gt = np.stack([g @ pipe.R1.T for g in ds.gt_poses])
     frames = []

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import weakref
 from itertools import product
 from pathlib import Path
 
@@ -64,7 +63,7 @@ def attribute_sequence(data: Path, step: int, overrides: list[str]) -> dict:
     from slam.config import load_config
     from slam.io.datasets import open_dataset
     from vo.health import weighted_median
-    from vo.odometry import Correspondences, StereoOdometry
+    from vo.odometry import AheadFlow, Correspondences, StereoOdometry
 
     cfg = load_config(None, [*overrides])
     ds = open_dataset(data, cfg.data)
@@ -89,10 +88,8 @@ def attribute_sequence(data: Path, step: int, overrides: list[str]) -> dict:
             seen_t = torch.from_numpy(seen)[None, None]
             for depth, flow, weights in VARIANTS:
                 cur, ref = views[depth], pviews[depth]
-                if flow == "exact":
-                    cur.flow_ahead = (weakref.ref(ref), Correspondences(flow_x, seen_t))
-                res = odo[weights].track(cur, ref)
-                cur.flow_ahead = None
+                exact = AheadFlow(ref, Correspondences(flow_x, seen_t)) if flow == "exact" else None
+                res = odo[weights].track(cur, ref, ahead=exact)
                 errors[(depth, flow, weights)].append(np.nan if res.failed else pose_error_mm(res.relative, T_gt))
                 if (depth, flow, weights) == ("stereo", "dis", "learned"):
                     dis_failed += int(res.failed)
