@@ -69,7 +69,33 @@ def make_fusion(config: SlamConfig, odometry: StereoOdometry, fuses: bool):
     return SurfelFusion(surfel_map, odometry.K, LearnedWeight() if learned else EveryPixel())
 
 
-class Tracker:
+class SequenceMapping:
+    """What a run reports of its tracker or mapper: the map, the last pose, the graph's poses.
+    Subclasses hold ``fusion``, ``state`` and ``graph``."""
+
+    graph = NoGraph()
+
+    @property
+    def map(self):
+        """The surfel map (None when the run fuses none)."""
+        return self.fusion.map
+
+    @property
+    def pose(self) -> np.ndarray:
+        """The last tracked frame's rectified ``T_wc`` (mm)."""
+        return self.state.pose
+
+    @property
+    def loops(self):
+        """The loop closure's graph and its events (None without ``graph.loop_closure``)."""
+        return self.graph.loops
+
+    def optimised_poses(self, positions: range) -> Optional[np.ndarray]:
+        """``(N, 4, 4)`` rectified ``T_wc`` after the graph's optimisations (None without a graph)."""
+        return self.graph.optimised_poses(positions)
+
+
+class Tracker(SequenceMapping):
     """One sequence's tracking.
 
     Args:
@@ -111,21 +137,6 @@ class Tracker:
 
     # ------------------------------------------------------------------ what the run reports
     @property
-    def map(self):
-        """The surfel map (None when the run fuses none)."""
-        return self.fusion.map
-
-    @property
-    def pose(self) -> np.ndarray:
-        """The last tracked frame's rectified ``T_wc`` (mm)."""
-        return self.state.pose
-
-    @property
-    def loops(self):
-        """The loop closure's graph and its events (None without ``graph.loop_closure``)."""
-        return self.graph.loops
-
-    @property
     def fallbacks(self) -> int:
         """Frame2model steps tracked against the previous frame for lack of model coverage."""
         return self.references.fallbacks
@@ -134,10 +145,6 @@ class Tracker:
     def rebuilds(self) -> int:
         """Times the model around the view was rebuilt (the cross-check)."""
         return self.acceptance.rebuilds
-
-    def optimised_poses(self, positions: range) -> Optional[np.ndarray]:
-        """``(N, 4, 4)`` rectified ``T_wc`` after the graph's optimisations (None without a graph)."""
-        return self.graph.optimised_poses(positions)
 
     def flows_against_previous_frame(self) -> bool:
         """Whether each frame's temporal flow goes against the frame before it (frame2frame; the
@@ -209,7 +216,7 @@ class Tracker:
                                     self.camera.width, seen_from=self.graph.active_from(self.state.position))
 
 
-class KnownPoseMapper:
+class KnownPoseMapper(SequenceMapping):
     """``analysis.poses: groundtruth``: no tracking; each frame is fused at its known pose. The
     learned w3D is what keeps badly matched depth, moving tissue and instruments out of the map,
     so each frame is still matched to the previous one for it (no pose is solved for).
@@ -217,9 +224,7 @@ class KnownPoseMapper:
     Args: as :class:`Tracker`, and ``poses``: ``(N, 4, 4)`` the frames' rectified ``T_wc`` (mm).
     """
 
-    loops = None
     fallbacks = rebuilds = 0
-    graph = NoGraph()
 
     def __init__(self, config: SlamConfig, camera: StereoCamera, initial_pose: np.ndarray, poses: np.ndarray):
         self.config = config
@@ -228,17 +233,6 @@ class KnownPoseMapper:
         self.fusion = make_fusion(config, self.odometry, True)
         self.learned = isinstance(self.fusion.weight, LearnedWeight)
         self.state = TrackState(np.asarray(initial_pose, dtype=np.float64))
-
-    @property
-    def map(self):
-        return self.fusion.map
-
-    @property
-    def pose(self) -> np.ndarray:
-        return self.state.pose
-
-    def optimised_poses(self, positions: range) -> None:
-        return None
 
     def flows_against_previous_frame(self) -> bool:
         """Whether the frames are matched to the previous one (for the learned w3D)."""
