@@ -221,7 +221,7 @@ class SlamConfig:
     Attributes:
         device: torch device of the VO and the map (``cpu``, ``cuda``, ...).
         threads: torch threads during a run (restored afterwards). 0 = every core but the one
-            the read-ahead thread computes the next frame's stereo on (``tracking.read_ahead``),
+            the read-ahead thread computes the next frame's stereo on,
             at least 1; without it, torch's default. On a 2-core machine 1 torch thread with the
             stereo ahead ran 10.1 / 7.7 fps (frame2frame / frame2model, 320x256) where 2 threads
             ran 8.7 / 6.1.

@@ -1,18 +1,14 @@
-"""tools/compare_baselines.py: the Open3D baselines on our stereo depth, crash isolation, tables."""
+"""benchmarks/compare_baselines.py: the Open3D baselines on our stereo depth, crash isolation, tables."""
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
-sys.path.insert(0, str(TOOLS))
-
-import baselines_open3d as B  # noqa: E402
-import compare_baselines as C  # noqa: E402
+from benchmarks import baselines_open3d as B
+from benchmarks import compare_baselines as C
 
 
 @pytest.fixture(scope="module")

@@ -1,14 +1,12 @@
-"""tools/benchmark_frame2model.py end to end on a tiny sequence: table, ratios and JSON."""
+"""benchmarks/benchmark_frame2model.py end to end on a tiny sequence: table, ratios and JSON."""
 from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-import benchmark_frame2model as B  # noqa: E402
+from benchmarks import benchmark_frame2model as B
 
 
 def test_benchmark_writes_ate_and_ratio_per_sequence(tmp_path, monkeypatch, capsys):

@@ -1,16 +1,13 @@
-"""tools/benchmark_loop_map.py end to end on a tiny loop, and the map error it rests on."""
+"""benchmarks/benchmark_loop_map.py end to end on a tiny loop, and the map error it rests on."""
 from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-import benchmark_loop_map as B  # noqa: E402
-
-from slam.evaluation.map_error import depth_errors_mm  # noqa: E402
+from benchmarks import benchmark_loop_map as B
+from slam.evaluation.map_error import depth_errors_mm
 
 
 def test_depth_errors_of_points_on_a_plane_and_behind_it():

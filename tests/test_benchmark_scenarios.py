@@ -1,16 +1,14 @@
-"""tools/benchmark_scenarios.py end to end on tiny sequences: Table 1's layout, the averages it
+"""benchmarks/benchmark_scenarios.py end to end on tiny sequences: Table 1's layout, the averages it
 prints, and the weight-map check on moving tissue."""
 from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-import benchmark_scenarios as B  # noqa: E402
+from benchmarks import benchmark_scenarios as B
 
 
 def test_table_has_per_scenario_mean_and_both_averages(tmp_path, monkeypatch, capsys):

@@ -1,12 +1,10 @@
-"""tools/benchmark_speed.py end to end on a tiny sequence: the runs' table and the map-cost table."""
+"""benchmarks/benchmark_speed.py end to end on a tiny sequence: the runs' table and the map-cost table."""
 from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-import benchmark_speed as B  # noqa: E402
+from benchmarks import benchmark_speed as B
 
 
 def test_speed_benchmark_reports_runs_and_the_map_cost(tmp_path, monkeypatch, capsys):

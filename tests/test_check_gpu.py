@@ -1,26 +1,15 @@
-"""tools/check_gpu.py: the device path (torch kernels) against the CPU's numba kernels."""
+"""benchmarks/check_gpu.py: the device path (torch kernels) against the CPU's numba kernels."""
 from __future__ import annotations
-
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _tool():
-    spec = importlib.util.spec_from_file_location("check_gpu", ROOT / "tools" / "check_gpu.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from benchmarks import check_gpu
 
 
 def test_pose_differences_measure_a_known_perturbation():
-    tool = _tool()
     rng = np.random.default_rng(0)
     ref = np.tile(np.eye(4), (5, 1, 1))
     ref[:, :3, :3] = Rotation.from_rotvec(rng.normal(0, 0.05, (5, 3))).as_matrix()
@@ -30,7 +19,7 @@ def test_pose_differences_measure_a_known_perturbation():
     bump[:3, 3] = [0.0, 0.002, 0.0]
     dev = ref.copy()
     dev[3] = ref[3] @ bump
-    dt, dr = tool.pose_differences(ref, dev)
+    dt, dr = check_gpu.pose_differences(ref, dev)
     np.testing.assert_allclose(dt, [0, 0, 0, 0.002, 0], atol=1e-9)
     np.testing.assert_allclose(dr, [0, 0, 0, 0.01, 0], atol=1e-7)
 
@@ -38,8 +27,8 @@ def test_pose_differences_measure_a_known_perturbation():
 def test_torch_kernels_on_the_cpu_match_the_numba_kernels(tmp_path, capsys):
     """The CI run of the GPU check: ``--device cpu`` runs the code a GPU runs (torch kernels);
     frame2frame's per-frame poses must equal the numba reference to 1e-3 mm / 1e-3 deg."""
-    code = _tool().main(["--device", "cpu", "--frames", "12", "--size", "320x256", "--modes", "frame2frame",
-                         "--out", str(tmp_path)])
+    code = check_gpu.main(["--device", "cpu", "--frames", "12", "--size", "320x256", "--modes", "frame2frame",
+                           "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert code == 0, out
     assert "| frame2frame |" in out and "PASS" in out
@@ -47,5 +36,5 @@ def test_torch_kernels_on_the_cpu_match_the_numba_kernels(tmp_path, capsys):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (torch.cuda.is_available() is False)")
 def test_cuda_matches_the_cpu(tmp_path, capsys):
-    code = _tool().main(["--device", "cuda", "--frames", "20", "--size", "320x256", "--out", str(tmp_path)])
+    code = check_gpu.main(["--device", "cuda", "--frames", "20", "--size", "320x256", "--out", str(tmp_path)])
     assert code == 0, capsys.readouterr().out

@@ -1,18 +1,13 @@
-"""tools/error_attribution.py: the exact rigid flow and the variants it tracks with."""
+"""benchmarks/error_attribution.py: the exact rigid flow and the variants it tracks with."""
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-
-from error_attribution import attribute_sequence, exact_flow  # noqa: E402
-
-from slam.synth import generate  # noqa: E402
-from slam.synth.appearance import Appearance  # noqa: E402
+from benchmarks.error_attribution import attribute_sequence, exact_flow
+from slam.synth import generate
+from slam.synth.appearance import Appearance
 
 
 def test_exact_flow_of_a_plane_under_a_known_motion():

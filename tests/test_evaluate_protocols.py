@@ -1,6 +1,6 @@
 """The paper's evaluation protocols (`slam evaluate --protocol stereomis|scared`, through their
-wrappers tools/evaluate_stereomis.py and tools/evaluate_scared.py that make synthetic stand-ins in
-the StereoMIS and SCARED layouts) end to end, run from the command line."""
+wrappers benchmarks/evaluate_stereomis.py and benchmarks/evaluate_scared.py that make synthetic
+stand-ins in the StereoMIS and SCARED layouts) end to end, run from the command line."""
 from __future__ import annotations
 
 import json
@@ -16,13 +16,14 @@ import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-TOOLS = REPO / "tools"
 ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 THREADS = ["--set", "threads=1", "--executor", "local"]
 
 
 def run_tool(name: str, *args, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(TOOLS / name), *map(str, args)], capture_output=True, text=True,
+    """``python -m benchmarks.NAME ARGS`` (``name`` with or without ``.py``)."""
+    module = f"benchmarks.{name.removesuffix('.py')}"
+    return subprocess.run([sys.executable, "-m", module, *map(str, args)], capture_output=True, text=True,
                           env=ENV, cwd=REPO, timeout=timeout)
 
 

@@ -1,15 +1,11 @@
 """Tracking does not change unnoticed: short default-config runs against the recorded reference
 (``tools/record_regression.py``; re-record it in the commit that changes tracking on purpose)."""
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tools"))
-import record_regression  # noqa: E402
+from benchmarks import record_regression
 
 REFERENCE = json.loads(record_regression.DEFAULT_OUT.read_text())
 

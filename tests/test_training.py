@@ -208,14 +208,11 @@ def test_pair_samples_against_model_views(tmp_path):
 
 
 def test_validation_loss_tool_reproduces_the_checkpoints_validation_loss(tmp_path, capsys):
-    """tools/validation_loss.py scores a checkpoint on the pairs `slam train` held out with the same
+    """benchmarks/validation_loss.py scores a checkpoint on the pairs `slam train` held out with the same
     config: the checkpoint's own best validation loss and its w = 1 reference come out again."""
     import json
-    import sys
-    from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-    import validation_loss
+    from benchmarks import validation_loss
 
     ckpt = train_once(tmp_path, "a")
     meta = torch.load(ckpt, weights_only=False)["meta"]

@@ -8,14 +8,13 @@ and once with the generator's exact depth (``analysis.depth_source=groundtruth``
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
-from slam.config import load_config
+from benchmarks.runs import synthetic, write_report
 from slam.app.runner import run_from_config
-from slam.synth import generate
+from slam.config import load_config
 
 
 def main() -> None:
@@ -35,9 +34,8 @@ def main() -> None:
         for source in ("stereo", "groundtruth"):
             ates = []
             for seed in args.seeds:
-                data = out / "data" / f"{scenario}_s{seed}_{args.size}_{args.frames}"
-                if not (data / "groundtruth.txt").is_file():
-                    generate(data, scenario, frames=args.frames, size=(w, h), seed=seed)
+                data = synthetic(out / "data" / f"{scenario}_s{seed}_{args.size}_{args.frames}", scenario,
+                                 frames=args.frames, size=(w, h), seed=seed)
                 cfg = load_config(None, [f"weights.mode={args.weights}", f"analysis.depth_source={source}",
                                          *args.set])
                 res = run_from_config(data, cfg, out / "runs" / f"{scenario}_s{seed}_{source}", print_summary=False,
@@ -49,10 +47,7 @@ def main() -> None:
     for r in rows:
         lines.append(f"| {r['scenario']} | {r['depth']} | {r['ate_mean_mm']:.3f} ± {r['ate_std_mm']:.3f} |")
     table = "\n".join(lines)
-    print(table)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "error_budget.md").write_text(table + "\n")
-    (out / "error_budget.json").write_text(json.dumps(rows, indent=2))
+    write_report(out, "error_budget", table, rows)
 
 
 if __name__ == "__main__":

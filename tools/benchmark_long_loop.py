@@ -17,34 +17,22 @@ tracked and the optimised trajectory.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import sys
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchmark_frame2model import METHODS  # noqa: E402
+from benchmarks.benchmark_frame2model import METHODS
+from benchmarks.runs import one_thread_config, pipeline, run_in_workers, synthetic, write_report
 
 
 def run_one(job: dict) -> dict:
     import resource
 
-    import torch
-
-    torch.set_num_threads(1)
-    from slam.config import load_config
-    from slam.io.datasets import open_dataset
-    from slam.app.pipeline import Pipeline
-
-    cfg = load_config(None, [*METHODS[job["method"]], "threads=1", *job["extra"]])
-    dataset = open_dataset(Path(job["data"]), cfg.data)
-    pipeline = Pipeline(cfg, dataset, Path(job["out"]))
-    result = pipeline.run(progress=False)
+    run = pipeline(one_thread_config(METHODS[job["method"]], job["extra"]), job["data"], job["out"])
+    result = run.run(progress=False)
     m = result.metrics
-    total = np.asarray(pipeline.timings.get("total", []))
+    total = np.asarray(run.timings.get("total", []))
     block = job["block"]
     lc = m.get("loop_closure", {})
     return {"method": job["method"], "frames": m["frames"], "fps": m["fps"],
@@ -85,21 +73,13 @@ def main() -> None:
     args = ap.parse_args()
     w, h = (int(v) for v in args.size.lower().split("x"))
     out = Path(args.out)
-    data = out / "data" / f"loop_s{args.seed}_{args.frames}_{w}x{h}"
-    if not (data / "groundtruth.txt").is_file():
-        from slam.synth import generate
-
-        generate(data, "loop", frames=args.frames, size=(w, h), seed=args.seed)
+    data = synthetic(out / "data" / f"loop_s{args.seed}_{args.frames}_{w}x{h}", "loop", frames=args.frames,
+                     size=(w, h), seed=args.seed)
     jobs = [{"method": m, "data": str(data), "out": str(out / m), "block": args.block, "extra": args.set}
             for m in args.methods]
-    import multiprocessing as mp
-
-    with ProcessPoolExecutor(max_workers=args.workers, mp_context=mp.get_context("spawn")) as pool:
-        rows = list(pool.map(run_one, jobs))
+    rows = run_in_workers(run_one, jobs, args.workers)
     table = format_table(rows, args.block)
-    print(table)
-    (out / "long_loop.md").write_text(table + "\n")
-    (out / "long_loop.json").write_text(json.dumps(rows, indent=1))
+    write_report(out, "long_loop", table, rows, indent=1)
 
 
 if __name__ == "__main__":

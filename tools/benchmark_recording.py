@@ -21,12 +21,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+from benchmarks.checkout import run_slam
 
 ROOT = Path(__file__).resolve().parents[1]
 RERUN = Path(sys.executable).parent / "rerun"
@@ -38,10 +39,7 @@ MAP = "/world/map"
 
 def slam(repo: Path, *args: str) -> None:
     """Run the ``slam`` command of the checkout ``repo``."""
-    code = ("import sys\ntry:\n    from slam.app.cli import main\nexcept ImportError:\n    from slam.cli import main\n"
-            "sys.argv[0] = 'slam'\nsys.exit(main())")       # (older checkouts kept it in slam.cli)
-    env = {**os.environ, "PYTHONPATH": str(repo), "OMP_NUM_THREADS": "1"}
-    res = subprocess.run([sys.executable, "-c", code, *args], cwd=repo, env=env, capture_output=True, text=True)
+    res = run_slam(repo, *args, capture_output=True, text=True)
     if res.returncode != 0:
         raise RuntimeError(f"slam {' '.join(args)} failed:\n{res.stdout[-2000:]}\n{res.stderr[-3000:]}")
 

@@ -5,7 +5,7 @@
 
 Generates validation sequences with a random appearance each (``slam synth --appearance random``:
 texture, highlights, smoke, exposure, vignetting, colour drawn from the seed), runs both modes with
-the textbook covariance (``health.covariance_scale_frame`` and ``_model`` = 1) and reads every
+the textbook covariance (``analysis.covariance_scale_frame`` and ``_model`` = 1) and reads every
 frame's NEES from ``tracking.csv``. The covariance ``s * sigma^2 * H^-1`` scales the NEES by
 ``1 / s``, so ``s = mean(NEES) / 6`` per reference kind (a camera frame, the model view). Prints
 per mode the fitted scale, the mean and median NEES after scaling and the share of frames inside

@@ -17,25 +17,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from benchmarks.checkout import run_slam
+
 ROOT = Path(__file__).resolve().parents[1]
 #: metrics.json keys that measure the machine, not the result
 VOLATILE = ("fps", "timings_ms", "peak_rss_mb", "provenance", "data")
 FILES = ("trajectory.txt", "tracking.csv", "metrics.json", "map.ply")
-
-
-def slam_main(tree: Path) -> str:
-    """Python code running the ``slam`` command of the checkout ``tree`` (on PYTHONPATH; older
-    checkouts kept it in slam.cli; an import that fails is no test: the virtual environment's
-    editable install may find the main checkout's modules)."""
-    module = "slam.app.cli" if (tree / "slam" / "app" / "cli.py").is_file() else "slam.cli"
-    return f"import sys\nfrom {module} import main\nsys.argv[0] = 'slam'\nsys.exit(main())"
 
 
 @dataclass
@@ -84,8 +77,7 @@ def render(out: Path) -> dict[str, Path]:
     for seq in SEQUENCES.values():
         path = out / "data" / seq.name
         if not (path / "groundtruth.txt").is_file():
-            subprocess.run([sys.executable, "-c", slam_main(ROOT), "synth", str(path), *seq.synth, "--quiet"],
-                           check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+            run_slam(ROOT, "synth", path, *seq.synth, "--quiet", check=True)
             for k in seq.unreadable:
                 (path / "video_frames" / f"{k:06d}l.png").write_bytes(b"not a png")
         data[seq.name] = path
@@ -94,9 +86,8 @@ def render(out: Path) -> dict[str, Path]:
 
 def run(tree: Path, data: Path, out: Path, args: list) -> tuple[int, str]:
     shutil.rmtree(out, ignore_errors=True)
-    env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "-c", slam_main(tree), "run", str(data), "--out", str(out), "--quiet",
-                           "--set", "threads=1", *args], capture_output=True, text=True, cwd=tree, env=env)
+    proc = run_slam(tree, "run", data, "--out", out, "--quiet", "--set", "threads=1", *args,
+                    capture_output=True, text=True)
     return proc.returncode, (proc.stderr.strip().splitlines() or [""])[-1]
 
 

@@ -23,7 +23,7 @@ import logging
 import time
 import weakref
 from dataclasses import dataclass, field
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -197,15 +197,10 @@ class StereoOdometry:
         device: torch device.
         networks: weight networks to use in ``learned`` mode (loaded from the config's
             checkpoints when None).
-        weight_hook: optional ``hook(cur, ref, flow, w2d, w3d) -> (w2d, w3d)`` applied to the weight
-            maps before every solve (analysis: ``tools/oracle_weights.py`` masks them with ground
-            truth); ``(1, 1, H, W)`` maps, ``flow`` the temporal flow ``(1, 2, H, W)``.
     """
 
     def __init__(self, camera: StereoCamera, config: VOConfig, device: str = "cpu",
-                 networks: TrackingNetworks | None = None,
-                 weight_hook: Callable[..., tuple[torch.Tensor, torch.Tensor]] | None = None):
-        self.weight_hook = weight_hook
+                 networks: TrackingNetworks | None = None):
         self.camera = camera
         self.config = config
         self.device = torch.device(device)
@@ -440,8 +435,6 @@ class StereoOdometry:
             with torch.inference_mode():
                 w2d, w3d = networks(inp)
         w3d = w3d * problem.valid3
-        if self.weight_hook is not None:
-            w2d, w3d = self.weight_hook(cur, ref, corr.flow, w2d, w3d)
         return w2d, w3d
 
     def solve(self, cur: View, problem: ResidualProblem, w2d: torch.Tensor, w3d: torch.Tensor,
