@@ -99,14 +99,15 @@ def read_metrics(path: Path) -> dict:
     return metrics
 
 
-def close(a, b, rtol: float = 1e-9) -> bool:
-    """Equal, floats within ``rtol`` (the accuracy figures: evo sums in another order)."""
+def close(a, b, rtol: float = 1e-9, atol: float = 1e-12) -> bool:
+    """Equal, floats within ``rtol`` or ``atol`` (the accuracy figures in mm and degrees: evo sums
+    in another order; a zero error, as at known poses, is rounding noise of 1e-15)."""
     if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() == b.keys() and all(close(a[k], b[k], rtol) for k in a)
+        return a.keys() == b.keys() and all(close(a[k], b[k], rtol, atol) for k in a)
     if isinstance(a, list) and isinstance(b, list):
-        return len(a) == len(b) and all(close(x, y, rtol) for x, y in zip(a, b))
+        return len(a) == len(b) and all(close(x, y, rtol, atol) for x, y in zip(a, b))
     if isinstance(a, float) and isinstance(b, float):
-        return a == b or abs(a - b) <= rtol * max(abs(a), abs(b))
+        return a == b or abs(a - b) <= max(rtol * max(abs(a), abs(b)), atol)
     return a == b
 
 
