@@ -5,8 +5,10 @@
 
 For each size it renders a synthetic `scanning` sequence (seed 4242, an evaluation seed), then runs
 `slam run` in a fresh process per (mode, size) in the default configuration (plus any --set),
-and prints a table of per-stage milliseconds, fps, peak memory and ATE, so speed bought with
-accuracy shows in the same table. The maps of these runs hold 0.1-0.3 M surfels; a second table
+and prints a table of per-stage milliseconds (wall time: stages of different threads overlap),
+the CPU milliseconds per frame of the main thread, the read-ahead thread and the whole process
+(with the pools' workers), fps, peak memory and ATE, so speed bought with accuracy shows in the
+same table; below it the thread pools' sizes (torch, OpenCV, numba). The maps of these runs hold 0.1-0.3 M surfels; a second table
 gives the map's cost per frame with a million surfels (``tools/benchmark_mapping.py`` on
 ``--map-sizes``: fusion, depth-only and colour render, fusion + colour render, the frame2model
 default's cost). Results are also written as markdown and JSON.
@@ -22,6 +24,9 @@ from pathlib import Path
 
 from benchmarks.runs import write_report
 
+#: metrics.json's thread_cpu_ms: CPU ms per frame of the main thread, the read-ahead thread and the
+#: whole process (those two plus the pools' workers of torch, OpenCV and numba)
+THREADS = ["main", "reader", "process"]
 STAGES = ["read", "stereo", "flow", "flow_back", "weights", "solve", "verify", "cross_check", "render", "fusion", "logging", "total"]
 
 
@@ -60,8 +65,11 @@ def main(argv: list[str] | None = None) -> None:
             m = json.loads((run_dir / "metrics.json").read_text())
             rows.append({"size": size, "mode": mode, "fps": m["fps"], "ate_rmse_mm": m.get("ate_rmse_mm"),
                          "peak_rss_mb": m.get("peak_rss_mb"), "failed": len(m["failed_frames"]),
-                         **{f"{k}_ms": m["timings_ms"].get(k) for k in STAGES}})
-    header = ["size", "mode", *[f"{k}_ms" for k in STAGES], "fps", "peak_rss_mb", "ate_rmse_mm", "failed"]
+                         **{f"{k}_ms": m["timings_ms"].get(k) for k in STAGES},
+                         **{f"cpu_{k}_ms": m.get("thread_cpu_ms", {}).get(k) for k in THREADS},
+                         "pools": m.get("thread_pools")})
+    header = ["size", "mode", *[f"{k}_ms" for k in STAGES], *[f"cpu_{k}_ms" for k in THREADS], "fps",
+              "peak_rss_mb", "ate_rmse_mm", "failed"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r in rows:
         cells = []
@@ -70,7 +78,8 @@ def main(argv: list[str] | None = None) -> None:
             cells.append("-" if v is None else (f"{v:.1f}" if isinstance(v, float) and h != "ate_rmse_mm" else
                                                 (f"{v:.3f}" if isinstance(v, float) else str(v))))
         lines.append("| " + " | ".join(cells) + " |")
-    table = "\n".join(lines)
+    pools = sorted({json.dumps(r["pools"], sort_keys=True) for r in rows if r.get("pools")})
+    table = "\n".join(lines) + "".join(f"\n\nthread pools: {p}" for p in pools)
     map_rows = map_cost(args.map_sizes, args.map_surfels, out) if args.map_surfels > 0 else []
     if map_rows:
         table += "\n\n" + map_table(map_rows, args.map_surfels)

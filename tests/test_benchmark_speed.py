@@ -19,10 +19,14 @@ def test_speed_benchmark_reports_runs_and_the_map_cost(tmp_path, monkeypatch, ca
         assert r["failed"] == 0 and r["fps"] > 0 and 0 < r["ate_rmse_mm"] < 1.0
     assert runs["frame2model"]["render_ms"] > 0 and runs["frame2model"]["fusion_ms"] > 0
     assert runs["frame2frame"]["render_ms"] is None
+    for r in runs.values():     # the CPU time of each pipeline thread, and of the process (its pools too)
+        assert r["cpu_main_ms"] > 0 and r["cpu_reader_ms"] > 0
+        assert r["cpu_process_ms"] >= 0.9 * (r["cpu_main_ms"] + r["cpu_reader_ms"])
+        assert r["pools"]["torch"] >= 1 and r["pools"]["opencv"] >= 1
     (cost,) = data["map_cost"]
     assert cost["size"] == "160x128" and cost["surfels"] >= 20000 and 0 < cost["visible"] < cost["surfels"]
     assert 0 < cost["fuse"] < cost["total_rgb"] and cost["render_rgb"] > 0
     table = (out / "speed.md").read_text()
-    assert "| 160x128 | frame2model |" in table
+    assert "| 160x128 | frame2model |" in table and "thread pools: " in table
     assert f"| 160x128 | {cost['surfels']} | {int(cost['visible'])} | {cost['fuse']:.1f} |" in table
     assert table in capsys.readouterr().out

@@ -27,6 +27,7 @@ from slam.app.interrupts import SignalGate, signal_of
 from slam.app.prefetch import Prefetcher
 from slam.app.progress import Progress
 from slam.app.run_folder import replaced_atomically, write_json_atomically
+from slam.app.thread_use import ThreadClock, pool_sizes
 from slam.tracking.state import FrameResult
 from slam.tracking.tracker import KnownPoseMapper, Tracker
 from slam.app.tracking_csv import TrackingCsvWriter
@@ -131,6 +132,8 @@ class Pipeline:
         self.frame_rate = dataset.fps
         self.tracker = self._make_tracker(at_frame_rate(config, self.frame_rate))
         self.timings: dict[str, list[float]] = {}
+        self._cpu = ThreadClock()                 # CPU time per frame of the main and read-ahead threads
+        self._pools: dict = {}                    # the libraries' thread pools during the run
         self._ahead_view: Optional[View] = None   # the read-ahead thread's last view
         self._ahead_flow = NoFlowAhead()          # what the read-ahead thread does for the flow (run)
         self._waiting_for = -1      # the frame the main thread waits for (-1: none)
@@ -188,6 +191,8 @@ class Pipeline:
         reader = Prefetcher(self._read_view, n, enabled=self._read_ahead())
         threads_before = torch.get_num_threads()
         torch.set_num_threads(self._torch_threads())
+        self._pools = pool_sizes()
+        self._cpu.start()
         t_start = time.perf_counter()
         with SignalGate() as gate:      # a signal stops the frames; a second one skips the slow outputs
             try:
@@ -202,6 +207,7 @@ class Pipeline:
                 log.warning("interrupted after %d frames: writing the results (a second Ctrl-C skips the map, "
                             "mesh, plot and recording)", len(result.records))
             finally:
+                self._cpu.stop()
                 reader.close()
                 writer.close()
                 health_csv.close()
@@ -213,7 +219,8 @@ class Pipeline:
                      result: RunResult) -> None:
         """Frame ``k``: track it, write its rows (``trajectory.txt``, ``tracking.csv``), keep its record."""
         t_frame = time.perf_counter()
-        record = self._step(k, reader)
+        with self._cpu.measure("main"):
+            record = self._step(k, reader)
         if record.failed:
             log.warning("frame %d: %s (pose carried over)", record.index, record.reason)
         elif record.flagged:
@@ -251,6 +258,7 @@ class Pipeline:
         and their timings. The read-ahead thread runs this, for one frame after another (the main
         thread where views are not made ahead); tracking takes the flow only where it goes
         against its reference. Raises what reading the frame raises."""
+        t_cpu = time.thread_time()
         frame = self.dataset.frame(k)
         timings: dict = {}
         view = self._make_view(frame, timings)
@@ -258,6 +266,9 @@ class Pipeline:
         ahead = None
         if previous is not None and self._waiting_for != k:
             ahead = self._ahead_flow(view, previous, timings)
+        thread = self._cpu.reader_name()
+        if thread is not None:     # (in the main thread, the frame's CPU time counts it already)
+            self._cpu.add(thread, (time.thread_time() - t_cpu) * 1000.0)
         return frame, view, ahead, timings
 
     def _make_view(self, frame: StereoFrame, timings: dict) -> View:
@@ -378,6 +389,8 @@ class Pipeline:
             "flags": {str(r.index): r.reason for r in records if r.flagged},
             "fps": (done - failed) / wall_s if wall_s > 0 else 0.0,
             "timings_ms": {k: float(np.mean(v)) for k, v in self.timings.items()},
+            "thread_cpu_ms": self._cpu.summary(done),
+            "thread_pools": self._pools,
             "mode": self.config.tracking.mode,
             "frame_rate": self.frame_rate,
             "model_fallbacks": self.tracker.fallbacks,

@@ -1,0 +1,70 @@
+"""How a run uses the machine's threads: the CPU time each of the pipeline's threads spends per
+frame (``time.thread_time``: what the thread computed, not what it waited for) and the sizes of
+the thread pools the libraries run inside those threads (torch, OpenCV, numba).
+
+Wall-clock stage times (``timings_ms``) overlap across threads and include waiting for a core;
+the CPU time per thread says which thread bounds the frame rate.
+"""
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from contextlib import contextmanager
+from typing import Iterator
+
+import numpy as np
+
+
+class ThreadClock:
+    """CPU milliseconds per frame of each named pipeline thread (``main``, ``reader``), and of the
+    whole process (those threads plus the libraries' pool workers) from :meth:`start` on."""
+
+    def __init__(self) -> None:
+        self._ms: dict[str, list[float]] = {}
+        self._process_start = self._process_end = time.process_time()
+
+    def start(self) -> None:
+        """The frames start now (the process's CPU time counts from here)."""
+        self._process_start = time.process_time()
+
+    def stop(self) -> None:
+        """The frames are done (the final trajectory, map and files are not counted)."""
+        self._process_end = time.process_time()
+
+    @contextmanager
+    def measure(self, thread: str) -> Iterator[None]:
+        """Add the calling thread's CPU time inside the block to ``thread``'s frames."""
+        t0 = time.thread_time()
+        try:
+            yield
+        finally:
+            self.add(thread, (time.thread_time() - t0) * 1000.0)
+
+    def add(self, thread: str, ms: float) -> None:
+        """One frame's ``ms`` of CPU time of ``thread``."""
+        self._ms.setdefault(thread, []).append(ms)
+
+    def reader_name(self) -> str | None:
+        """``reader`` when called outside the main thread; None in the main thread (whose frames
+        ``main`` already counts)."""
+        return None if threading.current_thread() is threading.main_thread() else "reader"
+
+    def summary(self, frames: int) -> dict[str, float]:
+        """Mean CPU milliseconds per frame of each thread measured, and ``process``: the
+        process's CPU time from :meth:`start` to :meth:`stop` over ``frames`` (pool workers
+        included)."""
+        out = {name: float(np.mean(ms)) for name, ms in self._ms.items() if ms}
+        if frames > 0:
+            out["process"] = (self._process_end - self._process_start) * 1000.0 / frames
+        return out
+
+
+def pool_sizes() -> dict[str, int | None]:
+    """Threads of each library's pool as set now: torch's intra-op pool, OpenCV's ``parallel_for``
+    pool and numba's (None where numba was not loaded: a run that never compiled a kernel)."""
+    import cv2
+    import torch
+    numba = sys.modules.get("numba")
+    return {"torch": torch.get_num_threads(), "opencv": cv2.getNumThreads(),
+            "numba": numba.get_num_threads() if numba is not None else None}
