@@ -129,7 +129,7 @@ def test_ray_executor_isolates_a_crash(monkeypatch, short_tmp):
     (short_tmp / "ray").mkdir()
     (short_tmp / "ray" / "ray_current_cluster").write_text("127.0.0.1:9")
     monkeypatch.setenv("RAY_TMPDIR", str(short_tmp))      # Ray's files in RAY_TMPDIR/ray
-    ex = RayExecutor(None, workers=2, cpus_per_task=1, env={"OMP_NUM_THREADS": "1"}, timeout_s=2.0, grace_s=5.0)
+    ex = RayExecutor(None, workers=2, cpus_per_task=1, env={"OMP_NUM_THREADS": "1"}, timeout_s=3.0, grace_s=10.0)
     events = collect(ex, [("ok", 1), ("crash", 0), ("sleep", 100), ("ok", 2)])
     ends = {e.index: e.outcome for e in events if isinstance(e, Finished)}
     assert sorted(ends) == [0, 1, 2, 3]
