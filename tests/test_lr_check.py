@@ -67,3 +67,22 @@ def test_pipeline_starts_the_solver_from_the_last_motion(synth_dir, tmp_path):
             for k in range(1, 5):
                 assert np.allclose(starts[k], motions[k - 1])
             assert np.linalg.norm(motions[-1][:3, 3]) > 0.05      # the camera moves: a real start
+
+
+def test_the_flow_back_preset_follows_the_working_resolution():
+    """``auto``: DIS ``fast`` where its quarter-size working image is >= 128 px wide (640x512:
+    within 1 % of ``medium``'s ATE), ``medium`` below (320x256: ``fast`` made the check less
+    selective); an explicit preset is kept."""
+    from vo.config import CorrespondenceConfig, lr_check_preset
+    from vo.correspondence import DisFlow, make_lr_check_flow
+
+    assert lr_check_preset("auto", 640) == "fast"
+    assert lr_check_preset("auto", 512) == "fast"
+    assert lr_check_preset("auto", 320) == "medium"
+    assert lr_check_preset("medium", 1280) == "medium"
+    stereo = DisFlow("medium")
+    cfg = CorrespondenceConfig()
+    assert cfg.dis_lr_check_preset == "auto"
+    assert make_lr_check_flow(cfg, stereo, 320) is stereo
+    back = make_lr_check_flow(cfg, stereo, 640)
+    assert back is not stereo and back.preset == "fast"

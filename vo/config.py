@@ -24,6 +24,21 @@ def need(ok: bool, message: str) -> None:
         raise ValueError(message)
 
 
+# the left-right check's flow back runs at DIS `fast` where `fast`'s working resolution (a quarter
+# of the image) is at least this wide: 160 px at 640x512 kept the ATE within 1 %, 80 px at 320x256
+# made the check less selective (docs/experiments.md, "Does the left-right check need a `medium`
+# flow back?")
+LR_CHECK_FAST_MIN_WIDTH = 128
+
+
+def lr_check_preset(preset: str, width: int) -> str:
+    """The DIS preset of the left-right check's flow back for images ``width`` px wide
+    (``auto``: ``fast`` where ``width / 4 >= LR_CHECK_FAST_MIN_WIDTH``, else ``medium``)."""
+    if preset != "auto":
+        return preset
+    return "fast" if width / 4 >= LR_CHECK_FAST_MIN_WIDTH else "medium"
+
+
 @dataclass
 class CorrespondenceConfig:
     """Dense correspondences.
@@ -36,8 +51,10 @@ class CorrespondenceConfig:
         dis_lr_check_preset: DIS preset for the flow back of the left-right check (right ->
             left, ``lr_check_px``), which only says which depths to keep. ``fast`` costs 7 ms
             against ``medium``'s 38 at 640x512 and moves the ATE there by at most 1 %; at
-            320x256 its working resolution (80 px wide) makes the check less selective
-            (docs/experiments.md, "Speed"), so ``medium`` stays the default.
+            320x256 its working resolution (a quarter of the image: 80 px wide) makes the check
+            less selective (docs/experiments.md, "Speed"). ``auto`` (default): ``fast`` where
+            that working resolution is at least ``LR_CHECK_FAST_MIN_WIDTH`` px wide, else
+            ``medium`` (:func:`lr_check_preset`).
         dis_match_exposure: brighten the darker image of each pair to the other's mean before
             DIS (``vo.correspondence.dis.match_exposure``: exposure jumps between frames).
         raft_checkpoint: path to a RAFT checkpoint (RAFT or RAFT-small, told apart by its tensors).
@@ -74,7 +91,7 @@ class CorrespondenceConfig:
     backend: Literal["dis", "raft"] = "dis"
     dis_preset: Preset = "medium"
     dis_stereo_preset: Preset = "medium"
-    dis_lr_check_preset: Preset = "medium"
+    dis_lr_check_preset: Literal["auto", "ultrafast", "fast", "medium"] = "auto"
     raft_checkpoint: str = ""
     lr_check_px: float = 1.0
     dis_match_exposure: bool = fixed("an analysis switch (analysis.match_exposure)", True)

@@ -206,7 +206,7 @@ class StereoOdometry:
         self.device = torch.device(device)
         self.K = camera.K_tensor(self.device)
         self.temporal_flow, self.stereo_flow = make_flow_estimators(config.correspondence, device)
-        self.lr_check_flow = make_lr_check_flow(config.correspondence, self.stereo_flow)
+        self.lr_check_flow = make_lr_check_flow(config.correspondence, self.stereo_flow, camera.width)
         self.networks: TrackingNetworks | None = None
         wcfg, dcfg = config.weights, config.depth
         if wcfg.mode == "learned":

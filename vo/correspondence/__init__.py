@@ -1,7 +1,7 @@
 """Dense correspondence backends: temporal optical flow and stereo parallax flow."""
 from __future__ import annotations
 
-from vo.config import CorrespondenceConfig
+from vo.config import CorrespondenceConfig, lr_check_preset
 from vo.correspondence.base import FlowEstimator
 from vo.correspondence.dis import DisFlow
 
@@ -19,11 +19,13 @@ def make_flow_estimators(config: CorrespondenceConfig, device: str = "cpu") -> t
     raise ValueError(f"unknown correspondence.backend '{config.backend}' (dis, raft)")
 
 
-def make_lr_check_flow(config: CorrespondenceConfig, stereo: FlowEstimator) -> FlowEstimator:
-    """The estimator of the left-right check's flow back: DIS at ``dis_lr_check_preset`` (the
-    stereo estimator itself where that is its preset, and with RAFT)."""
-    if config.backend == "dis" and config.dis_lr_check_preset != config.dis_stereo_preset:
-        return DisFlow(config.dis_lr_check_preset, exposure=config.dis_match_exposure)
+def make_lr_check_flow(config: CorrespondenceConfig, stereo: FlowEstimator, width: int) -> FlowEstimator:
+    """The estimator of the left-right check's flow back for images ``width`` px wide: DIS at
+    ``dis_lr_check_preset`` (:func:`vo.config.lr_check_preset`; the stereo estimator itself where
+    that is its preset, and with RAFT)."""
+    preset = lr_check_preset(config.dis_lr_check_preset, width)
+    if config.backend == "dis" and preset != config.dis_stereo_preset:
+        return DisFlow(preset, exposure=config.dis_match_exposure)
     return stereo
 
 
