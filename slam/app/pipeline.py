@@ -132,7 +132,7 @@ class Pipeline:
         self.frame_rate = dataset.fps
         self.tracker = self._make_tracker(at_frame_rate(config, self.frame_rate))
         self.timings: dict[str, list[float]] = {}
-        self._cpu = ThreadClock()                 # CPU time per frame of the main and read-ahead threads
+        self._cpu = ThreadClock()                 # CPU time per frame of the main, read-ahead and mapping threads
         self._pools: dict = {}                    # the libraries' thread pools during the run
         self._ahead_view: Optional[View] = None   # the read-ahead thread's last view
         self._ahead_flow = NoFlowAhead()          # what the read-ahead thread does for the flow (run)
@@ -207,6 +207,7 @@ class Pipeline:
                 log.warning("interrupted after %d frames: writing the results (a second Ctrl-C skips the map, "
                             "mesh, plot and recording)", len(result.records))
             finally:
+                self._record_thread_work(self.tracker.close())     # the last fusion in flight
                 self._cpu.stop()
                 reader.close()
                 writer.close()
@@ -230,6 +231,13 @@ class Pipeline:
                          record.reference, self._reference_frame(record), record.health)
         result.records.append(record)
         self._time("total", (time.perf_counter() - t_frame) * 1000.0)
+
+    def _record_thread_work(self, result: FrameResult) -> None:
+        """The stage times of ``result`` and the CPU time of the other threads handed over with it."""
+        for stage, ms in result.timings:
+            self._time(stage, ms)
+        for thread, ms in result.thread_cpu.items():
+            self._cpu.add(thread, ms)
 
     def _read_ahead(self) -> bool:
         """Whether views are made in the read-ahead thread (a stereo flow of its own: not one RAFT
@@ -294,8 +302,7 @@ class Pipeline:
         for stage, ms in timings.items():
             self._time(stage, ms)
         result = self.tracker.track(k, view, ahead)
-        for stage, ms in result.timings:
-            self._time(stage, ms)
+        self._record_thread_work(result)
         track = result.track
         pose = result.pose @ self.R1
         self._rect_poses.append(np.asarray(result.pose))

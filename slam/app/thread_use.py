@@ -17,8 +17,8 @@ import numpy as np
 
 
 class ThreadClock:
-    """CPU milliseconds per frame of each named pipeline thread (``main``, ``reader``), and of the
-    whole process (those threads plus the libraries' pool workers) from :meth:`start` on."""
+    """CPU milliseconds per frame of each named pipeline thread (``main``, ``reader``, ``mapping``),
+    and of the whole process (those threads plus the libraries' pool workers) from :meth:`start` on."""
 
     def __init__(self) -> None:
         self._ms: dict[str, list[float]] = {}
@@ -51,10 +51,10 @@ class ThreadClock:
         return None if threading.current_thread() is threading.main_thread() else "reader"
 
     def summary(self, frames: int) -> dict[str, float]:
-        """Mean CPU milliseconds per frame of each thread measured, and ``process``: the
+        """CPU milliseconds per frame of each thread measured (its total over ``frames``), and ``process``: the
         process's CPU time from :meth:`start` to :meth:`stop` over ``frames`` (pool workers
         included)."""
-        out = {name: float(np.mean(ms)) for name, ms in self._ms.items() if ms}
+        out = {name: float(np.sum(ms)) / max(frames, 1) for name, ms in self._ms.items() if ms}
         if frames > 0:
             out["process"] = (self._process_end - self._process_start) * 1000.0 / frames
         return out

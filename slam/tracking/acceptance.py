@@ -56,7 +56,7 @@ class PlainAcceptance:
         self.health = health
         self.flag_mm = flag_mm
 
-    def independent_estimate(self, view: View, ref, init: Optional[np.ndarray], ahead: Optional[AheadFlow],
+    def independent_estimate(self, view: View, init: Optional[np.ndarray], ahead: Optional[AheadFlow],
                              result: FrameResult, state: TrackState) -> None:
         """(No second estimate.)"""
         return None
@@ -137,14 +137,13 @@ class CrossCheckAcceptance(PlainAcceptance):
         self.flagged_in_row = 0
         self.rebuilds = 0
 
-    def independent_estimate(self, view: View, ref, init: Optional[np.ndarray], ahead: Optional[AheadFlow],
+    def independent_estimate(self, view: View, init: Optional[np.ndarray], ahead: Optional[AheadFlow],
                              result: FrameResult, state: TrackState) -> Optional[FrameEstimate]:
-        """Where ``ref`` is the model view: the frame tracked against the last frame with its own
-        flow (``ahead`` where it was computed ahead), independent of the map; None where it
-        failed or has no covariance, or the reference is a frame. Timed as ``cross_check`` (its
-        flow, weights and solve)."""
-        if not ref.against_model:
-            return None
+        """The frame tracked against the last frame with its own flow (``ahead`` where it was
+        computed ahead), independent of the map: it is made before the reference is chosen,
+        while the mapping thread fuses the last frame, and used only where the reference is the
+        model view (:meth:`accept`). None where it failed or has no covariance. Timed as
+        ``cross_check`` (its flow, weights and solve)."""
         t0 = time.perf_counter()
         if ahead is None or not ahead.serves(state.last_view):
             ahead = AheadFlow(state.last_view, self.odometry.correspondences(view, state.last_view))
@@ -157,6 +156,8 @@ class CrossCheckAcceptance(PlainAcceptance):
 
     def accept(self, view: View, ref, track: TrackResult, estimate: Optional[FrameEstimate], result: FrameResult,
                state: TrackState) -> bool:
+        if not ref.against_model:       # (tracked against a frame: nothing independent to check)
+            estimate = None
         if track.failed and estimate is None:
             self.fail(result, track)
             return False

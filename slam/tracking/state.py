@@ -56,6 +56,8 @@ class FrameResult:
         loop: the loop candidate found at the frame (``graph.loop_closure``), else None.
         view: the frame's view as tracked (its depth filtered where it was), None where it was
             not tracked.
+        thread_cpu: CPU ms of the pipeline's other threads handed over with the frame (``mapping``:
+            the fusions that finished while it was tracked).
     """
 
     pose: np.ndarray
@@ -71,6 +73,7 @@ class FrameResult:
     timings: list = field(default_factory=list)
     loop: Optional[LoopEvent] = None
     view: Optional[View] = None
+    thread_cpu: dict = field(default_factory=dict)
 
     def time(self, stage: str, since: float) -> None:
         """Record ``stage`` as the time elapsed since ``since`` (``time.perf_counter()``)."""

@@ -1,15 +1,18 @@
 """The tracker: a sequence's state and its decisions, one frame at a time.
 
 ``Tracker.track`` is called once per frame and reads like the algorithm: start the graph at the
-first frame; relocalise after frames that could not be read; choose the reference; predict the
-solver's start; register the frame (with the cross-check's independent estimate where there is
-one); accept it (or fail it); fuse it unless flagged; advance; add it to the graph. What varies
-between runs are objects chosen once, in the constructor:
+first frame; relocalise after frames that could not be read; estimate it against the last frame
+where the cross-check wants an independent estimate (this needs no map: it runs while the mapping
+thread fuses the last frame); take the map as of the last frame; choose the reference; predict the
+solver's start; register the frame; accept it (or fail it); hand it to the mapping stage unless
+flagged; advance; add it to the graph. What varies between runs are objects chosen once, in the
+constructor:
 
 - the reference policy (:mod:`slam.tracking.references`): previous frame, still-camera keyframes,
   or the model view;
 - the acceptance policy (:mod:`slam.tracking.acceptance`): plain, or the cross-check;
-- the fusion (:mod:`slam.tracking.map_fusion`): none, or into the surfel map;
+- the fusion (:mod:`slam.tracking.map_fusion`): none, or into the surfel map, in the mapping
+  thread (:mod:`slam.tracking.mapping_stage`);
 - the graph (:mod:`slam.tracking.graph`): none, or loop closure with relocalisation;
 - the solver's start: identity, or the last motion continued.
 
@@ -31,6 +34,7 @@ from slam.tracking.cross_check import CrossCheck
 from slam.tracking.graph import LoopClosureGraph, NoGraph
 from slam.tracking.health import HealthMonitor
 from slam.tracking.map_fusion import EveryPixel, LearnedWeight, NoFusion, SurfelFusion
+from slam.tracking.mapping_stage import BackgroundMapping, InlineMapping
 from slam.tracking.poses import relative
 from slam.tracking.references import (DepthFilter, ModelViewReference, NoDepthFilter, PreviousFrame,
                                       StillCameraKeyframes)
@@ -42,16 +46,16 @@ from vo.odometry import AheadFlow, StereoOdometry, TrackResult, View
 class IdentityStart:
     """The solver starts each frame at the identity (``solver.init: identity``)."""
 
-    def __call__(self, state: TrackState, ref) -> None:
+    def __call__(self, state: TrackState, ref=None) -> None:
         return None
 
 
 class LastMotionStart:
     """The solver starts from the last tracked motion continued by one frame (from the keyframe:
-    the motion since it, continued)."""
+    the motion since it, continued; ``ref`` None: from the last frame)."""
 
-    def __call__(self, state: TrackState, ref) -> np.ndarray:
-        if ref.keyframe is not None:
+    def __call__(self, state: TrackState, ref=None) -> np.ndarray:
+        if ref is not None and ref.keyframe is not None:
             return relative(ref.pose, state.pose) @ state.velocity
         return state.velocity
 
@@ -69,16 +73,38 @@ def make_fusion(config: SlamConfig, odometry: StereoOdometry, fuses: bool):
     return SurfelFusion(surfel_map, odometry.K, LearnedWeight() if learned else EveryPixel())
 
 
+def make_mapping(fusion):
+    """The mapping stage: a map's fusion in the mapping thread, else nothing to hand over."""
+    return InlineMapping(fusion) if fusion.map is None else BackgroundMapping(fusion)
+
+
 class SequenceMapping:
     """What a run reports of its tracker or mapper: the map, the last pose, the graph's poses.
-    Subclasses hold ``fusion``, ``state`` and ``graph``."""
+    Subclasses hold ``mapping`` (:mod:`slam.tracking.mapping_stage`), ``state`` and ``graph``."""
 
     graph = NoGraph()
 
     @property
     def map(self):
-        """The surfel map (None when the run fuses none)."""
-        return self.fusion.map
+        """The surfel map (None when the run fuses none); its every use waits for the fusion in
+        flight."""
+        return self.mapping.map
+
+    def hand_over(self, result: FrameResult) -> None:
+        """Add the fusions the mapping stage finished since the last frame to ``result``'s
+        timings and the mapping thread's CPU time to its ``thread_cpu``."""
+        timings, cpu_ms = self.mapping.finished()
+        result.timings += timings
+        if cpu_ms:
+            result.thread_cpu["mapping"] = result.thread_cpu.get("mapping", 0.0) + cpu_ms
+
+    def close(self) -> FrameResult:
+        """Finish the fusion in flight and stop the mapping thread; returns what it reports (the
+        last fusion's time) in an otherwise empty result."""
+        result = FrameResult(self.state.pose)
+        self.mapping.close()
+        self.hand_over(result)
+        return result
 
     @property
     def pose(self) -> np.ndarray:
@@ -110,7 +136,7 @@ class Tracker(SequenceMapping):
         self.odometry = StereoOdometry(camera, config.vo(), device=config.device)
         self.state = TrackState(np.asarray(initial_pose, dtype=np.float64))
         frame2model = config.tracking.mode == "frame2model"
-        self.fusion = make_fusion(config, self.odometry, frame2model or config.logging.export_map)
+        self.mapping = make_mapping(make_fusion(config, self.odometry, frame2model or config.logging.export_map))
         self.graph = (LoopClosureGraph(config.graph, config.health.covariance_scale_model)
                       if frame2model and config.graph.loop_closure else NoGraph())
         self.references = self._reference_policy(frame2model)
@@ -162,32 +188,36 @@ class Tracker(SequenceMapping):
             return self.first_frame(position, view)
         result = FrameResult(state.pose)
         if self.graph.relocalised_after_gap(self, position, view, result):
+            self.hand_over(result)
             return result
+        estimate = self.acceptance.independent_estimate(view, self.start(state), ahead, result, state)
+        self.mapping.settle()
         ref = self.references.choose(state, result)
         result.reference, result.reference_position, result.keyframe = ref.kind, ref.position, ref.keyframe
         init = self.start(state, ref)
-        estimate = self.acceptance.independent_estimate(view, ref, init, ahead, result, state)
         track = self.register(view, ref, init, ahead, result)
         if not self.acceptance.accept(track.view, ref, track, estimate, result, state):
             self.references.forget_keyframe()
             self.graph.after_failure(self, position, view, result)
+            self.hand_over(result)
             return result
         pose = result.pose
         state.velocity = relative(state.pose, pose)
         self.acceptance.after_flags(pose, result, state)
         if not result.flagged:
-            result.timings += self.fusion.fuse(track.view, result.track.w3d, pose, position,
-                                               self.graph.active_from(position))
+            self.mapping.fuse(track.view, result.track.w3d, pose, position, self.graph.active_from(position))
         self.advance(position, track.view, pose, result)
         self.graph.add(self, position, track.view, pose, result)
+        self.hand_over(result)
         return result
 
     def first_frame(self, position: int, view: View) -> FrameResult:
         """The first frame: fused at the initial pose; the graph starts at it."""
         result = FrameResult(self.state.pose, reference="first")
-        result.timings += self.fusion.fuse(view, None, self.state.pose, position, self.graph.active_from(position))
+        self.mapping.fuse(view, None, self.state.pose, position, self.graph.active_from(position))
         self.advance(position, view, self.state.pose, result)
         self.graph.start(self, position, view)
+        self.hand_over(result)
         return result
 
     def register(self, view: View, ref, init: Optional[np.ndarray], ahead: Optional[AheadFlow],
@@ -230,8 +260,9 @@ class KnownPoseMapper(SequenceMapping):
         self.config = config
         self.poses = poses
         self.odometry = StereoOdometry(camera, config.vo(), device=config.device)
-        self.fusion = make_fusion(config, self.odometry, True)
-        self.learned = isinstance(self.fusion.weight, LearnedWeight)
+        fusion = make_fusion(config, self.odometry, True)
+        self.mapping = make_mapping(fusion)
+        self.learned = isinstance(fusion.weight, LearnedWeight)
         self.state = TrackState(np.asarray(initial_pose, dtype=np.float64))
 
     def flows_against_previous_frame(self) -> bool:
@@ -251,6 +282,7 @@ class KnownPoseMapper(SequenceMapping):
             problem = self.odometry.residual_problem(view, last, corr)
             _, w3d = self.odometry.weight_maps(view, last, corr, problem)
             result.timings += [("flow", (t1 - t0) * 1000.0), ("weights", (time.perf_counter() - t1) * 1000.0)]
-        result.timings += self.fusion.fuse(view, w3d, pose, position, None)
+        self.mapping.fuse(view, w3d, pose, position, None)
         self.state.pose, self.state.last_view, self.state.position = pose, view, position
+        self.hand_over(result)
         return result
