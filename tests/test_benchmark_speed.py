@@ -21,12 +21,35 @@ def test_speed_benchmark_reports_runs_and_the_map_cost(tmp_path, monkeypatch, ca
     assert runs["frame2frame"]["render_ms"] is None
     for r in runs.values():     # the CPU time of each pipeline thread, and of the process (its pools too)
         assert r["cpu_main_ms"] > 0 and r["cpu_reader_ms"] > 0
-        assert r["cpu_process_ms"] >= 0.9 * (r["cpu_main_ms"] + r["cpu_reader_ms"])
+        assert r["cpu_process_ms"] >= 0.9 * (r["cpu_main_ms"] + r["cpu_reader_ms"] + (r["cpu_mapping_ms"] or 0.0))
         assert r["pools"]["torch"] >= 1 and r["pools"]["opencv"] >= 1
     (cost,) = data["map_cost"]
     assert cost["size"] == "160x128" and cost["surfels"] >= 20000 and 0 < cost["visible"] < cost["surfels"]
     assert 0 < cost["fuse"] < cost["total_rgb"] and cost["render_rgb"] > 0
     table = (out / "speed.md").read_text()
-    assert "| 160x128 | frame2model |" in table and "thread pools: " in table
+    assert runs["frame2model"]["cpu_mapping_ms"] > 0 and runs["frame2frame"]["cpu_mapping_ms"] is None
+    assert "| scanning | 160x128 | frame2model |" in table and "thread pools: " in table
     assert f"| 160x128 | {cost['surfels']} | {int(cost['visible'])} | {cost['fuse']:.1f} |" in table
     assert table in capsys.readouterr().out
+
+
+def test_speed_benchmark_compares_checkouts_run_by_run(tmp_path, capsys):
+    """Two checkouts (here the same one twice), alternating, twice each: median rows with their
+    fps range and the ratio table; both ran the same sequence, so their poses agree."""
+    from pathlib import Path
+
+    root = str(Path(B.__file__).resolve().parents[1])
+    out = tmp_path / "cmp"
+    B.main(["--frames", "6", "--sizes", "160x128", "--modes", "frame2frame", "--repeat", "2",
+            "--repo", f"base={root}", "--repo", f"new={root}", "--map-surfels", "0", "--out", str(out)])
+    data = json.loads((out / "speed.json").read_text())
+    assert [(r["repo"], r["rep"]) for r in data["runs"]] == [("base", 0), ("new", 0), ("base", 1), ("new", 1)]
+    rows = {r["repo"]: r for r in data["rows"]}
+    assert set(rows) == {"base", "new"}
+    for name, row in rows.items():
+        fps = sorted(r["fps"] for r in data["runs"] if r["repo"] == name)
+        assert row["fps"] == (fps[0] + fps[1]) / 2 and row["fps_range"] == f"{fps[0]:.2f}-{fps[1]:.2f}"
+    assert rows["base"]["ate_rmse_mm"] == rows["new"]["ate_rmse_mm"]
+    table = (out / "speed.md").read_text()
+    ratio = rows["new"]["fps"] / rows["base"]["fps"]
+    assert "median fps over base's:" in table and f"| scanning | 160x128 | frame2frame | {ratio:.2f}x |" in table
