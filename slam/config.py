@@ -220,11 +220,11 @@ class SlamConfig:
 
     Attributes:
         device: torch device of the VO and the map (``cpu``, ``cuda``, ...).
-        threads: torch threads during a run (restored afterwards). 0 = every core but the one
-            the read-ahead thread computes the next frame's stereo on,
-            at least 1; without it, torch's default. On a 2-core machine 1 torch thread with the
-            stereo ahead ran 10.1 / 7.7 fps (frame2frame / frame2model, 320x256) where 2 threads
-            ran 8.7 / 6.1.
+        threads: the cores a run may use (0 = all of this process's): torch's pool gets every
+            one but the read-ahead thread's (at least 1), OpenCV's all of them, during the frames
+            (restored afterwards; ``slam.app.thread_use.ThreadBudget``). On a 2-core machine 1
+            torch thread with the stereo ahead ran 10.1 / 7.7 fps (frame2frame / frame2model,
+            320x256) where 2 threads ran 8.7 / 6.1.
     """
 
     device: str = "cpu"
@@ -242,7 +242,7 @@ class SlamConfig:
     analysis: AnalysisConfig = field(default_factory=AnalysisConfig)
 
     def __post_init__(self):
-        need(self.threads >= 0, "threads must be >= 0 (0 = every core but the read-ahead thread's)")
+        need(self.threads >= 0, "threads must be >= 0 (0 = every core)")
 
     def vo(self) -> VOConfig:
         """The VO core's part of the configuration."""

@@ -45,3 +45,35 @@ def test_pool_sizes_reads_torch_and_opencv():
     sizes = pool_sizes()
     assert sizes["torch"] == torch.get_num_threads()
     assert sizes["opencv"] == cv2.getNumThreads()
+
+
+def test_threads_is_the_runs_budget_of_cores():
+    """``threads`` cores: torch gets all but the read-ahead thread's, OpenCV all; 0: every core."""
+    import cv2
+    import torch
+
+    from slam.app.thread_use import ThreadBudget, available_cores
+
+    assert ThreadBudget.of(3, read_ahead=True) == ThreadBudget(torch=2, opencv=3)
+    assert ThreadBudget.of(1, read_ahead=True) == ThreadBudget(torch=1, opencv=1)
+    assert ThreadBudget.of(2, read_ahead=False) == ThreadBudget(torch=2, opencv=2)
+    cores = available_cores()
+    assert ThreadBudget.of(0, read_ahead=True) == ThreadBudget(torch=max(1, cores - 1), opencv=cores)
+    before = torch.get_num_threads(), cv2.getNumThreads()
+    with ThreadBudget(torch=1, opencv=1).applied():
+        assert (torch.get_num_threads(), cv2.getNumThreads()) == (1, 1)
+        assert pool_sizes()["torch"] == 1 and pool_sizes()["opencv"] == 1
+    assert (torch.get_num_threads(), cv2.getNumThreads()) == before
+
+
+def test_a_run_reports_the_pools_of_its_budget(synth_dir, tmp_path):
+    import json
+
+    from slam.app.runner import run_from_config
+    from slam.config import load_config
+
+    data = synth_dir("rigid", 4)
+    run_from_config(data, load_config(None, ["threads=1"]), tmp_path / "run", print_summary=False)
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["thread_pools"]["torch"] == 1 and metrics["thread_pools"]["opencv"] == 1
+    assert metrics["thread_cpu_ms"]["main"] > 0 and metrics["thread_cpu_ms"]["reader"] > 0

@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Callable, Optional
 
 import numpy as np
-import torch
 
 from slam.config import SlamConfig, at_frame_rate, save_config
 from slam.io.datasets.base import StereoFrame
@@ -27,7 +26,7 @@ from slam.app.interrupts import SignalGate, signal_of
 from slam.app.prefetch import Prefetcher
 from slam.app.progress import Progress
 from slam.app.run_folder import replaced_atomically, write_json_atomically
-from slam.app.thread_use import ThreadClock, pool_sizes
+from slam.app.thread_use import ThreadBudget, ThreadClock, pool_sizes
 from slam.tracking.state import FrameResult
 from slam.tracking.tracker import KnownPoseMapper, Tracker
 from slam.app.tracking_csv import TrackingCsvWriter
@@ -189,14 +188,14 @@ class Pipeline:
         self._ahead_view = None
         self._ahead_flow = FlowAhead(self.odometry) if self._flow_ahead() else NoFlowAhead()
         reader = Prefetcher(self._read_view, n, enabled=self._read_ahead())
-        threads_before = torch.get_num_threads()
-        torch.set_num_threads(self._torch_threads())
-        self._pools = pool_sizes()
-        self._cpu.start()
-        t_start = time.perf_counter()
+        budget = ThreadBudget.of(self.config.threads, self._read_ahead())
         with SignalGate() as gate:      # a signal stops the frames; a second one skips the slow outputs
+            t_start = time.perf_counter()
             try:
-                with gate.interruptible(), bar:
+                with budget.applied(), gate.interruptible(), bar:   # (the outputs after: the pools as they were)
+                    self._pools = pool_sizes()
+                    self._cpu.start()
+                    t_start = time.perf_counter()
                     for k in range(n):
                         self._track_frame(k, reader, writer, health_csv, result)
                         bar.update(1, fps=f"{(k + 1) / max(time.perf_counter() - t_start, 1e-9):.1f}",
@@ -212,7 +211,6 @@ class Pipeline:
                 reader.close()
                 writer.close()
                 health_csv.close()
-                torch.set_num_threads(threads_before)
             self._finish(result, time.perf_counter() - t_start, gate)
         return result
 
@@ -244,15 +242,6 @@ class Pipeline:
         model shared with the temporal flow)."""
         odo = self.odometry
         return odo.stereo_flow is not odo.temporal_flow
-
-    def _torch_threads(self) -> int:
-        """``threads``, or with 0 every core but the read-ahead thread's (torch's default without it)."""
-        if self.config.threads > 0:
-            return self.config.threads
-        if not self._read_ahead():
-            return torch.get_num_threads()
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        return max(1, cores - 1)
 
     def _flow_ahead(self) -> bool:
         """Whether the read-ahead thread also computes the temporal flow against the previous

@@ -7,10 +7,12 @@ the CPU time per thread says which thread bounds the frame rate.
 """
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Iterator
 
 import numpy as np
@@ -73,3 +75,42 @@ def pool_sizes() -> dict[str, int | None]:
     numba = sys.modules.get("numba")
     return {"torch": torch.get_num_threads(), "opencv": cv2.getNumThreads(),
             "numba": int(numba.config.NUMBA_NUM_THREADS) if numba is not None else None}
+
+
+def available_cores() -> int:
+    """The cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+@dataclass(frozen=True)
+class ThreadBudget:
+    """The pools a run's ``threads`` (the cores it may use; 0: all) gives the libraries.
+
+    - torch: every core but the read-ahead thread's (which computes the next frame's stereo and
+      flow beside the tracking), at least one; all of them without a read-ahead thread;
+    - OpenCV: all of them: its ``parallel_for`` workers take whichever core the other threads leave
+      idle (at 640x512 on two cores frame2frame ran 7.7 fps with two against 7.1 with one; the
+      mapping thread and numba start no pool: none of our compiled kernels is parallel).
+    """
+
+    torch: int
+    opencv: int
+
+    @staticmethod
+    def of(threads: int, read_ahead: bool) -> "ThreadBudget":
+        cores = threads if threads > 0 else available_cores()
+        return ThreadBudget(torch=max(1, cores - 1) if read_ahead else cores, opencv=cores)
+
+    @contextmanager
+    def applied(self) -> Iterator[None]:
+        """Set the pools for the block (new threads inherit torch's) and restore them after."""
+        import cv2
+        import torch
+        before = torch.get_num_threads(), cv2.getNumThreads()
+        torch.set_num_threads(self.torch)
+        cv2.setNumThreads(self.opencv)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(before[0])
+            cv2.setNumThreads(before[1])
