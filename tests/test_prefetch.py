@@ -74,7 +74,8 @@ def test_read_ahead_gives_the_same_run_in_another_thread(synth_dir, tmp_path):
     cfg = load_config(None, [])
     pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / "auto")
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    assert pipe._torch_threads() == max(1, cores - 1)
+    from slam.app.thread_use import ThreadBudget
+    assert ThreadBudget.of(cfg.threads, pipe._read_ahead()).torch == max(1, cores - 1)
 
 
 @pytest.mark.parametrize("mode, slow", [("frame2frame", "track"), ("frame2model", "track"), ("frame2frame", "stereo")])
