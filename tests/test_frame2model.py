@@ -291,7 +291,11 @@ def test_model_views_are_weighted_by_the_model_reference_networks(synth_dir, tmp
     assert not torch.allclose(cam[0], model[0]) and not torch.allclose(cam[1], model[1])
     # an unfiltered frame (stereo depth) is weighed by the networks trained on stereo depth
     assert nets.stereo is not nets.filtered
-    assert torch.equal(cam[0], nets.stereo(_weight_inputs(odo, views[1], views[0], corr.flow, valid))[0])
+    own = nets.stereo(_weight_inputs(odo, views[1], views[0], corr.flow, valid))
+    assert torch.equal(cam[0], own[0])
+    # the reference's depth along the flow is taken from the residual problem, not sampled again:
+    # the same w3D bit for bit as the inputs sampled by network_inputs itself
+    assert torch.equal(cam[1], own[1] * problem.valid3) and bool(problem.valid3.any())
 
     named = load_config(None, [f"weights.checkpoint={CHECKPOINT_DIR / 'weights_2d3d.pt'}"])
     named_nets = StereoOdometry(ds.camera, named.vo()).networks

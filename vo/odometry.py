@@ -431,7 +431,9 @@ class StereoOdometry:
             dmax = self.config.depth.max_depth_mm
             inp = WeightInputs(image_cur=cur.image, depth_cur=cur.depth / dmax, flow=corr.flow,
                                parallax_cur=cur.parallax, image_ref=ref.image, depth_ref=ref.depth / dmax,
-                               parallax_ref=ref.parallax, valid=problem.valid)
+                               parallax_ref=ref.parallax, valid=problem.valid,
+                               # (the reference's depth along the flow: its points' z, sampled already)
+                               depth_ref_along_flow=problem.points_ref[:, 2:3], lands_on_ref_depth=problem.valid3)
             with torch.inference_mode():
                 w2d, w3d = networks(inp)
         w3d = w3d * problem.valid3

@@ -49,6 +49,10 @@ class WeightInputs:
         flow: ``(B, 2, H, W)`` temporal flow current -> reference (pixels).
         parallax_cur, parallax_ref: ``(B, 2, H, W)`` stereo parallax flows (pixels).
         valid: ``(B, 1, H, W)`` bool pixels that enter the objective.
+        depth_ref_along_flow: ``depth_ref`` sampled at ``x + flow`` (bilinear) where the residual
+            problem already did (its reference points' z), else None: sampled here.
+        lands_on_ref_depth: ``(B, 1, H, W)`` bool pixels whose flow draws on valid reference depth
+            only (the 3D residual's pixels), given with ``depth_ref_along_flow``.
     """
 
     image_cur: torch.Tensor
@@ -59,6 +63,8 @@ class WeightInputs:
     depth_ref: torch.Tensor
     parallax_ref: torch.Tensor
     valid: torch.Tensor
+    depth_ref_along_flow: torch.Tensor | None = None
+    lands_on_ref_depth: torch.Tensor | None = None
 
 
 def _scale_flow(flow: torch.Tensor, width: int) -> torch.Tensor:
@@ -101,9 +107,13 @@ def network_inputs(inp: WeightInputs, downscale: int, version: int = INPUT_VERSI
         return x3[:, :IN_CHANNELS[1][0]], x3
     flow_fine = torch.asinh(flow / FLOW_FINE_PX)
     # relative depth change between the views along the flow (zero where either depth is invalid)
-    warped = sample_by_flow(torch.cat([inp.depth_ref, (inp.depth_ref > 0).to(dtype)], 1), inp.flow)
-    both = inp.valid & (inp.depth_cur > 0) & (warped[:, 1:2] > 0.999)
-    rel = torch.where(both, (inp.depth_cur - warped[:, 0:1]) / inp.depth_cur.clamp(min=1e-6), torch.zeros_like(inp.depth_cur))
+    if inp.depth_ref_along_flow is None:
+        warped = sample_by_flow(torch.cat([inp.depth_ref, (inp.depth_ref > 0).to(dtype)], 1), inp.flow)
+        depth_ref_along_flow, lands = warped[:, 0:1], warped[:, 1:2] > 0.999
+    else:
+        depth_ref_along_flow, lands = inp.depth_ref_along_flow, inp.lands_on_ref_depth
+    both = inp.valid & (inp.depth_cur > 0) & lands
+    rel = torch.where(both, (inp.depth_cur - depth_ref_along_flow) / inp.depth_cur.clamp(min=1e-6), torch.zeros_like(inp.depth_cur))
     change = torch.asinh(_downsample(rel, (h, w)) / DEPTH_CHANGE_REL)
     x3 = torch.cat([coords, cur, flow_fine, ref_warped, change], 1)
     return x3[:, :IN_CHANNELS[2][0]], x3
