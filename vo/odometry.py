@@ -27,6 +27,7 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from vo.camera import StereoCamera
 from vo.config import VOConfig
@@ -492,6 +493,9 @@ class StereoOdometry:
             return np.eye(4), f"implausible rotation {rot_deg:.1f} deg"
         relative = T.numpy().copy()
         relative[:3, 3] *= dmax
+        # the solver's rotation is orthonormal to float32 rounding only; projected onto SO(3), so that
+        # thousands of chained poses stay rotations (evaluation rejects a drifting rotation part)
+        relative[:3, :3] = Rotation.from_matrix(relative[:3, :3]).as_matrix()
         return relative, ""
 
     # ---------------------------------------------------------------- flows
