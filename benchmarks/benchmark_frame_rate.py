@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.runs import one_thread_config, run_in_workers, synthetic, write_report
+from benchmarks.runs import one_thread_config, pipeline, run_in_workers, synthetic, write_report
 
 STEPS = (1, 5, 10, 20)          # 25, 5, 2.5 and 1.25 fps
 GAPS = (5, 10)
@@ -118,13 +118,10 @@ def frame_errors(poses: np.ndarray, truth: np.ndarray, failed: np.ndarray) -> np
 
 def run_case(job: dict) -> dict:
     """One tracking run of the benchmark: its per-frame record and summary."""
-    from slam.app.pipeline import Pipeline
     from slam.evaluation.metrics import align, ate_rmse
-    from slam.io.datasets import open_dataset
 
     cfg = one_thread_config([f"tracking.mode={job['mode']}"], job["extra"])
-    dataset = open_dataset(Path(job["data"]), cfg.data).select(f"::{job['step']}")
-    pipe = Pipeline(cfg, dataset, Path(job["out"]))
+    pipe = pipeline(cfg, job["data"], job["out"], frames=f"::{job['step']}")
     result = pipe.run(progress=False)
     records = result.records
     poses = np.stack([r.pose for r in records])
@@ -133,8 +130,10 @@ def run_case(job: dict) -> dict:
     flagged = np.array([r.flagged for r in records]) & ~failed
     errors = frame_errors(poses, truth, failed)
     tracked = ~failed          # the ATE of the frames with a pose of their own (a failed one keeps the last)
-    aligned, _ = align(truth[tracked], poses[tracked])
-    ate_tracked = ate_rmse(truth[tracked], aligned) if tracked.sum() >= 3 else None
+    ate_tracked = None
+    if tracked.sum() >= 3:
+        aligned, _ = align(truth[tracked], poses[tracked])
+        ate_tracked = ate_rmse(truth[tracked], aligned)
     relocalised = [k for k, r in enumerate(records) if r.reference == "relocalised" or "relocalised" in r.reason]
     return {**{k: job[k] for k in ("scenario", "seed", "mode", "step", "gap", "kind", "gap_from")},
             "ate_rmse_mm": result.metrics.get("ate_rmse_mm"), "ate_tracked_mm": ate_tracked, "frames": len(records),

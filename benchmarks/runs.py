@@ -28,13 +28,14 @@ def one_thread_config(overrides: list[str], extra: list[str] = ()):
     return load_config(None, [*overrides, "threads=1", *extra])
 
 
-def pipeline(config, data: str | Path, out: str | Path, logger=None):
-    """The pipeline of ``config`` on the sequence ``data`` (read as ``config.data`` says), writing
-    to ``out``; ``.run(progress=False)`` runs it."""
+def pipeline(config, data: str | Path, out: str | Path, logger=None, frames: str | None = None):
+    """The pipeline of ``config`` on the sequence ``data`` (read as ``config.data`` says; ``frames``:
+    the selection of ``--frames``, e.g. ``::5``), writing to ``out``; ``.run(progress=False)`` runs it."""
     from slam.app.pipeline import Pipeline
     from slam.io.datasets import open_dataset
 
-    return Pipeline(config, open_dataset(Path(data), config.data), Path(out), logger=logger)
+    dataset = open_dataset(Path(data), config.data)
+    return Pipeline(config, dataset.select(frames) if frames else dataset, Path(out), logger=logger)
 
 
 def _one_torch_thread() -> None:
