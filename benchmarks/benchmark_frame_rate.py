@@ -134,7 +134,7 @@ def run_case(job: dict) -> dict:
     if tracked.sum() >= 3:
         aligned, _ = align(truth[tracked], poses[tracked])
         ate_tracked = ate_rmse(truth[tracked], aligned)
-    relocalised = [k for k, r in enumerate(records) if r.reference == "relocalised" or "relocalised" in r.reason]
+    relocalised = [k for k, r in enumerate(records) if r.reference == "relocalised"]
     return {**{k: job[k] for k in ("scenario", "seed", "mode", "step", "gap", "kind", "gap_from")},
             "ate_rmse_mm": result.metrics.get("ate_rmse_mm"), "ate_tracked_mm": ate_tracked, "frames": len(records),
             "errors_mm": [None if np.isnan(e) else round(float(e), 5) for e in errors],

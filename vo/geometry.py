@@ -118,3 +118,29 @@ def sample_valid_by_flow(valid: torch.Tensor, flow: torch.Tensor, grid: torch.Te
         ``(B, 1, H, W)`` bool.
     """
     return sample_by_flow(valid.to(flow.dtype), flow, grid=grid) > 0.999
+
+
+def motion_field(depth: torch.Tensor, valid: torch.Tensor, K: torch.Tensor, T: torch.Tensor) -> torch.Tensor:
+    """The flow a rigid motion gives: each pixel ``x`` of a view to ``pi(T pi^-1(x, D(x)))``.
+
+    Pixels without depth (``valid`` False, or no depth) take the median depth of those with: their
+    flow's rotational part is exact, the translational part a guess at the scene's depth. A view
+    without any depth gives the flow at a depth of 50 mm.
+
+    Args:
+        depth: ``(1, 1, H, W)`` the view's depth (mm).
+        valid: ``(1, 1, H, W)`` bool.
+        K: ``(3, 3)`` intrinsics (pixels).
+        T: ``(4, 4)`` the motion, the view's camera -> the other view's camera (mm).
+
+    Returns:
+        ``(1, 2, H, W)`` float32 pixels.
+    """
+    d = depth.float()
+    has = valid & (d > 0)
+    fill = d[has].median() if bool(has.any()) else d.new_tensor(50.0)
+    d = torch.where(has, d, fill)
+    T = torch.as_tensor(T, dtype=torch.float32, device=d.device)
+    points = backproject(d, K.to(d))
+    moved = torch.einsum("ij,bjhw->bihw", T[:3, :3], points) + T[:3, 3].view(1, 3, 1, 1)
+    return project(moved, K.to(d)) - pixel_grid(*d.shape[-2:], device=d.device)

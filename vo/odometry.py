@@ -35,7 +35,8 @@ from vo.correspondence import make_flow_estimators, make_lr_check_flow
 from vo.correspondence.dis import DisFlow, to_gray_u8
 from vo.depth import (depth_from_parallax, filter_depth_along_flow, flow_consistency, parallax_from_depth,
                       round_trip_error, vertical_parallax_ok)
-from vo.geometry import backproject, flow_grid, lands_inside, pixel_grid, sample_by_flow, sample_valid_by_flow
+from vo.geometry import (backproject, flow_grid, lands_inside, motion_field, pixel_grid, sample_by_flow,
+                         sample_valid_by_flow)
 from vo.health import PoseFit, pose_fit, weighted_median
 from vo.lie import rotation_angle_deg
 from vo.residuals import PoseProblem, residuals
@@ -222,11 +223,12 @@ class StereoOdometry:
         self._flow_inputs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
     # ---------------------------------------------------------------- views
-    def _flow(self, estimator, a_img: torch.Tensor, a_gray: np.ndarray, b_img: torch.Tensor, b_gray: np.ndarray) -> torch.Tensor:
+    def _flow(self, estimator, a_img: torch.Tensor, a_gray: np.ndarray, b_img: torch.Tensor, b_gray: np.ndarray,
+              start: torch.Tensor | None = None) -> torch.Tensor:
         if isinstance(estimator, DisFlow):
-            f = estimator.flow_gray(a_gray, b_gray)
+            f = estimator.flow_gray(a_gray, b_gray, None if start is None else start[0].permute(1, 2, 0).cpu().numpy())
             return torch.from_numpy(f).permute(2, 0, 1)[None].to(self.device)
-        return estimator.flow(a_img, b_img)
+        return estimator.flow(a_img, b_img, start)
 
     def make_view(self, left: np.ndarray, right: np.ndarray, mask: np.ndarray | None = None,
                   gt_depth: np.ndarray | None = None, timings: dict | None = None,
@@ -322,7 +324,8 @@ class StereoOdometry:
 
     # ---------------------------------------------------------------- tracking
     def track(self, cur: View, ref: View, init: np.ndarray | None = None,
-              filter_against: View | None = None, ahead: AheadFlow | None = None) -> TrackResult:
+              filter_against: View | None = None, ahead: AheadFlow | None = None,
+              seed: bool = False) -> TrackResult:
         """Estimate the transform from ``cur``'s camera to ``ref``'s camera.
 
         Args:
@@ -336,6 +339,8 @@ class StereoOdometry:
                 stereo depth.
             ahead: ``cur``'s flow computed ahead (:meth:`flow_ahead`), taken where it goes against
                 the view a flow is needed to.
+            seed: the temporal flow to ``ref`` starts from the motion field of ``init`` (predict,
+                then match what is left) instead of from scratch.
         """
         timings: dict = {}
         t0 = time.perf_counter()
@@ -343,7 +348,7 @@ class StereoOdometry:
         filter_corr = None
         if filter_against is not None and filter_against is not ref:
             filter_corr = self.correspondences(cur, filter_against, round_trip=False, ahead=ahead)
-        corr = self.correspondences(cur, ref, ahead=ahead)
+        corr = self.correspondences(cur, ref, ahead=ahead, motion=init if seed else None)
         back_ms = 0.0 if ahead is not None and corr is ahead.corr else corr.back_ms   # (timed in its thread)
         # 2. depth
         cur = self.filter_depth(cur, filter_against, corr if filter_corr is None else filter_corr)
@@ -369,18 +374,23 @@ class StereoOdometry:
                            round_trip_px=fb, view=cur)
 
     def correspondences(self, cur: View, against: View, round_trip: bool | None = None,
-                        ahead: AheadFlow | None = None) -> Correspondences:
+                        ahead: AheadFlow | None = None, motion: np.ndarray | None = None) -> Correspondences:
         """Step 1: the temporal flow ``cur -> against`` (against the real view whose pixels
-        ``against`` shows, if any): ``ahead`` where it goes against that view, else computed now;
-        with ``round_trip`` (None: ``correspondence.round_trip``) its forward-backward
-        disagreement (the flow the pose is solved on: a health figure), else the flow back only
-        for ``correspondence.fb_check_px``."""
-        against = against.image_of if against.image_of is not None else against
-        if ahead is not None and ahead.serves(against):
+        ``against`` shows, if any): ``ahead`` where it goes against that view, else computed now
+        (from the motion field of ``motion``, ``(4, 4)`` mm ``cur -> against``, where one is
+        given: the flow back from the inverse motion's); with ``round_trip`` (None:
+        ``correspondence.round_trip``) its forward-backward disagreement (the flow the pose is
+        solved on: a health figure), else the flow back only for ``correspondence.fb_check_px``."""
+        shown = against.image_of if against.image_of is not None else against
+        if motion is None and ahead is not None and ahead.serves(shown):
             return ahead.corr
         if round_trip is None:
             round_trip = self.config.correspondence.round_trip
-        return self._pair_flow(self.temporal_flow, cur, against, round_trip)
+        starts = None
+        if motion is not None:
+            starts = (motion_field(cur.depth, cur.valid, self.K, motion),
+                      motion_field(against.depth, against.valid, self.K, np.linalg.inv(motion)))
+        return self._pair_flow(self.temporal_flow, cur, shown, round_trip, starts)
 
     def filters_depth(self) -> bool:
         """Whether the depth filter is on (``depth.temporal_gain`` < 1)."""
@@ -512,17 +522,20 @@ class StereoOdometry:
                                                      need_image=not isinstance(self.temporal_flow, DisFlow))
         return self._flow_inputs[view]
 
-    def _pair_flow(self, estimator, cur: View, against: View, round_trip: bool = False) -> Correspondences:
-        """The temporal flow ``cur -> against``; with ``round_trip`` or ``correspondence.fb_check_px``
-        the flow back and their round-trip disagreement (a health figure) and, with the check, the
-        ``(1, 1, H, W)`` bool mask of flows that passed it (else None)."""
+    def _pair_flow(self, estimator, cur: View, against: View, round_trip: bool = False,
+                   starts: tuple[torch.Tensor, torch.Tensor] | None = None) -> Correspondences:
+        """The temporal flow ``cur -> against`` (from ``starts[0]``, where given); with
+        ``round_trip`` or ``correspondence.fb_check_px`` the flow back (from ``starts[1]``) and
+        their round-trip disagreement (a health figure) and, with the check, the ``(1, 1, H, W)``
+        bool mask of flows that passed it (else None)."""
+        start, start_back = (None, None) if starts is None else starts
         cur_img, cur_gray = self._flow_input(cur, against=against)
-        flow = self._flow(estimator, cur_img, cur_gray, against.image, against.gray)
+        flow = self._flow(estimator, cur_img, cur_gray, against.image, against.gray, start)
         fb_px = self.config.correspondence.fb_check_px
         if not round_trip and fb_px <= 0:
             return Correspondences(flow, None)
         t0 = time.perf_counter()
-        back = self._flow(estimator, against.image, against.gray, cur_img, cur_gray)
+        back = self._flow(estimator, against.image, against.gray, cur_img, cur_gray, start_back)
         error = round_trip_error(flow, back)
         return Correspondences(flow, error < fb_px if fb_px > 0 else None, error,
                                (time.perf_counter() - t0) * 1000.0)

@@ -185,6 +185,7 @@ class CrossCheckAcceptance(PlainAcceptance):
         if result.covariance is None:       # (no fit of the model view's estimate: as if it failed)
             return self.keep_frame_estimate(estimate, result, state, "the model view's estimate has no fit")
         model = Estimate(relative(state.pose, result.pose), result.covariance)
+        result.other_estimates += [model.relative, estimate.estimate.relative]
         check = self.cross_check.check(model, estimate.estimate)
         result.health.update(cross_check_d2=check.d2, cross_check_mm=check.distance_mm)
         result.covariance = check.covariance

@@ -44,12 +44,6 @@ class NoGraph:
     def active_from(self, position: int) -> None:
         return None
 
-    def relocalised_after_gap(self, tracker, position: int, view: View, result: FrameResult) -> bool:
-        return False
-
-    def after_failure(self, tracker, position: int, view: View, result: FrameResult) -> None:
-        """(No relocalisation.)"""
-
     def add(self, tracker, position: int, view: View, pose: np.ndarray, result: FrameResult) -> None:
         """(No graph to add to.)"""
 
@@ -98,6 +92,13 @@ class LoopClosureGraph(NoGraph):
         if self.relocalise(tracker, position, view, result):
             result.reason = f"{reason}; " + result.reason
         self.loops.add_frame(position, tracker.state.pose, None)
+
+    def recovered_large_motion(self, tracker, position: int, view: View, result: FrameResult) -> bool:
+        """(A frame keeps its estimate: the graph relocalises failed frames only.)"""
+        return False
+
+    def remember(self, position: int, view: View, pose: np.ndarray, result: FrameResult) -> None:
+        """(Its relocalisation's candidates are the graph's keyframes, :meth:`add`.)"""
 
     def add(self, tracker, position: int, view: View, pose: np.ndarray, result: FrameResult) -> None:
         """A tracked frame: a new graph keyframe closes loops and is remembered by its looks."""
@@ -180,6 +181,7 @@ class LoopClosureGraph(NoGraph):
         result.pose = guess @ reg.relative
         result.reason = f"relocalised against the keyframe at frame {match.position} ({moved:.1f} mm from the last pose)"
         tracker.state.velocity = np.eye(4)
+        result.reference = "relocalised"
         tracker.advance(position, view, result.pose, result)
         tracker.acceptance.reset()
         log.info("frame %d relocalised against the keyframe at frame %d: %.2f mm from the last pose",

@@ -58,6 +58,8 @@ class FrameResult:
             not tracked.
         thread_cpu: CPU ms of the pipeline's other threads handed over with the frame (``mapping``:
             the fusions that finished while it was tracked).
+        other_estimates: ``(4, 4)`` estimates of the frame's motion from the last frame (mm) that
+            were not reported (the cross-check's other one): starts for a recovery.
     """
 
     pose: np.ndarray
@@ -74,6 +76,7 @@ class FrameResult:
     loop: Optional[LoopEvent] = None
     view: Optional[View] = None
     thread_cpu: dict = field(default_factory=dict)
+    other_estimates: list = field(default_factory=list)
 
     def time(self, stage: str, since: float) -> None:
         """Record ``stage`` as the time elapsed since ``since`` (``time.perf_counter()``)."""

@@ -14,6 +14,8 @@ constructor:
 - the fusion (:mod:`slam.tracking.map_fusion`): none, or into the surfel map, in the mapping
   thread (:mod:`slam.tracking.mapping_stage`);
 - the graph (:mod:`slam.tracking.graph`): none, or loop closure with relocalisation;
+- the recovery after a failed frame or frames that could not be read: relocalisation against the
+  recent good frames (:mod:`slam.tracking.recovery`), or the graph's;
 - the solver's start: identity, or the last motion continued.
 
 :class:`KnownPoseMapper` maps at known poses instead (``analysis.poses: groundtruth``). The VO
@@ -36,6 +38,7 @@ from slam.tracking.health import HealthMonitor
 from slam.tracking.map_fusion import EveryPixel, LearnedWeight, NoFusion, SurfelFusion
 from slam.tracking.mapping_stage import BackgroundMapping, InlineMapping
 from slam.tracking.poses import relative
+from slam.tracking.recovery import FrameRelocaliser
 from slam.tracking.references import (DepthFilter, ModelViewReference, NoDepthFilter, PreviousFrame,
                                       StillCameraKeyframes)
 from slam.tracking.state import FrameResult, TrackState
@@ -139,6 +142,8 @@ class Tracker(SequenceMapping):
         self.mapping = make_mapping(make_fusion(config, self.odometry, frame2model or config.logging.export_map))
         self.graph = (LoopClosureGraph(config.graph, config.health.covariance_scale_model)
                       if frame2model and config.graph.loop_closure else NoGraph())
+        self.recovery = self.graph if isinstance(self.graph, LoopClosureGraph) else FrameRelocaliser(
+            self.odometry, config.health.covariance_scale_frame, camera.width)
         self.references = self._reference_policy(frame2model)
         self.acceptance = self._acceptance_policy(frame2model)
         self.start = LastMotionStart() if config.solver.init == "constant_velocity" else IdentityStart()
@@ -187,7 +192,7 @@ class Tracker(SequenceMapping):
         if state.last_view is None:
             return self.first_frame(position, view)
         result = FrameResult(state.pose)
-        if self.graph.relocalised_after_gap(self, position, view, result):
+        if self.recovery.relocalised_after_gap(self, position, view, result):
             self.hand_over(result)
             return result
         estimate = self.acceptance.independent_estimate(view, self.start(state), ahead, result, state)
@@ -198,15 +203,19 @@ class Tracker(SequenceMapping):
         track = self.register(view, ref, init, ahead, result)
         if not self.acceptance.accept(track.view, ref, track, estimate, result, state):
             self.references.forget_keyframe()
-            self.graph.after_failure(self, position, view, result)
+            self.recovery.after_failure(self, position, view, result)
             self.hand_over(result)
             return result
         pose = result.pose
         state.velocity = relative(state.pose, pose)
         self.acceptance.after_flags(pose, result, state)
+        if self.recovery.recovered_large_motion(self, position, view, result):
+            self.hand_over(result)
+            return result
         if not result.flagged:
             self.mapping.fuse(track.view, result.track.w3d, pose, position, self.graph.active_from(position))
         self.advance(position, track.view, pose, result)
+        self.recovery.remember(position, track.view, pose, result)
         self.graph.add(self, position, track.view, pose, result)
         self.hand_over(result)
         return result
@@ -216,6 +225,7 @@ class Tracker(SequenceMapping):
         result = FrameResult(self.state.pose, reference="first")
         self.mapping.fuse(view, None, self.state.pose, position, self.graph.active_from(position))
         self.advance(position, view, self.state.pose, result)
+        self.recovery.remember(position, view, self.state.pose, result)
         self.graph.start(self, position, view)
         self.hand_over(result)
         return result

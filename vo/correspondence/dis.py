@@ -34,21 +34,41 @@ class DisFlow:
         if preset not in _PRESETS:
             raise ValueError(f"unknown DIS preset '{preset}' (choose from {', '.join(_PRESETS)})")
         self.preset = preset
-        self._dis = cv2.DISOpticalFlow_create(_PRESETS[preset])
-        if not variational_refinement:
-            self._dis.setVariationalRefinementIterations(0)
+        self.variational_refinement = variational_refinement
+        self._dis = self._create()
+        self._seeded = None     # the instance of the flows from a start (made at the first)
 
-    def flow_gray(self, gray1: np.ndarray, gray2: np.ndarray) -> np.ndarray:
-        """``(H, W)`` uint8 grey images -> ``(H, W, 2)`` float32 flow from ``gray1`` to ``gray2``."""
+    def _create(self):
+        dis = cv2.DISOpticalFlow_create(_PRESETS[self.preset])
+        if not self.variational_refinement:
+            dis.setVariationalRefinementIterations(0)
+        return dis
+
+    def flow_gray(self, gray1: np.ndarray, gray2: np.ndarray, start: np.ndarray | None = None) -> np.ndarray:
+        """``(H, W)`` uint8 grey images -> ``(H, W, 2)`` float32 flow from ``gray1`` to ``gray2``;
+        ``start``: ``(H, W, 2)`` float32 flow the search starts from (None: from scratch).
+
+        OpenCV's DIS (5.x) takes a flow passed to ``calc`` as its start (at its coarsest scale) and
+        writes the result into it; after such a call, an instance's later calls without a flow no
+        longer give the flow from scratch (measured: up to 100 px apart on the same pair). Flows
+        from a start therefore run in an instance of their own, and the flows from scratch stay
+        those of an instance that never had one (bit for bit)."""
         if self.exposure:
             gray1, gray2 = match_exposure(gray1, gray2)
-        return self._dis.calc(gray1, gray2, None)
+        if start is None:
+            return self._dis.calc(gray1, gray2, None)
+        if self._seeded is None:
+            self._seeded = self._create()
+        return self._seeded.calc(gray1, gray2, np.array(start, dtype=np.float32, order="C"))
 
-    def flow(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        """``(B, 3, H, W)`` float RGB in [0, 1] -> ``(B, 2, H, W)`` flow from ``image1`` to ``image2``."""
+    def flow(self, image1: torch.Tensor, image2: torch.Tensor, start: torch.Tensor | None = None) -> torch.Tensor:
+        """``(B, 3, H, W)`` float RGB in [0, 1] -> ``(B, 2, H, W)`` flow from ``image1`` to
+        ``image2``; ``start``: ``(B, 2, H, W)`` flow to start from (None: from scratch)."""
         flows = [
-            torch.from_numpy(self.flow_gray(to_gray_u8(a), to_gray_u8(b))).permute(2, 0, 1)
-            for a, b in zip(image1, image2)
+            torch.from_numpy(self.flow_gray(to_gray_u8(a), to_gray_u8(b),
+                                            None if start is None else start[i].permute(1, 2, 0).cpu().numpy())
+                             ).permute(2, 0, 1)
+            for i, (a, b) in enumerate(zip(image1, image2))
         ]
         return torch.stack(flows).to(image1.device)
 

@@ -154,8 +154,10 @@ class RaftFlow:
         self.small = self.model.small
 
     @torch.no_grad()
-    def flow(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        """Flow from ``image1`` to ``image2``, both ``(B, 3, H, W)`` float RGB in [0, 1]; returns ``(B, 2, H, W)``."""
+    def flow(self, image1: torch.Tensor, image2: torch.Tensor, start: torch.Tensor | None = None) -> torch.Tensor:
+        """Flow from ``image1`` to ``image2``, both ``(B, 3, H, W)`` float RGB in [0, 1]; returns
+        ``(B, 2, H, W)``. ``start``: ``(B, 2, H, W)`` flow the updates start from (RAFT's
+        ``flow_init``, averaged onto its 1/8 grid), None: from zero."""
         if image1.shape != image2.shape or image1.dim() != 4 or image1.shape[1] != 3:
             raise ValueError(f"expected two (B, 3, H, W) images of equal shape, got {tuple(image1.shape)} "
                              f"and {tuple(image2.shape)}")
@@ -164,5 +166,9 @@ class RaftFlow:
         x2 = image2.to(self.device, torch.float32) * 255.0
         padder = InputPadder(*x1.shape[-2:])
         x1, x2 = padder.pad_images(x1, x2)
-        _, flow_up = self.model(x1, x2, iters=self.iters, test_mode=True)
+        flow_init = None
+        if start is not None:
+            padded = padder.pad_images(start.to(self.device, torch.float32))[0]
+            flow_init = F.avg_pool2d(padded, 8) / 8.0
+        _, flow_up = self.model(x1, x2, iters=self.iters, flow_init=flow_init, test_mode=True)
         return padder.unpad(flow_up).contiguous()
