@@ -93,7 +93,7 @@ class LoopClosureGraph(NoGraph):
             result.reason = f"{reason}; " + result.reason
         self.loops.add_frame(position, tracker.state.pose, None)
 
-    def recovered_large_motion(self, tracker, position: int, view: View, result: FrameResult) -> bool:
+    def recovered(self, tracker, position: int, view: View, result: FrameResult) -> bool:
         """(A frame keeps its estimate: the graph relocalises failed frames only.)"""
         return False
 

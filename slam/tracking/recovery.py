@@ -1,8 +1,8 @@
 """Recovery: re-acquiring the pose where tracking lost it, in both modes, without a map or a
 pose graph.
 
-After a frame failed, after frames that could not be read, or where a frame's flow moved further
-than DIS from scratch reliably finds (``LARGE_FLOW``: such a frame is flagged), the frame is
+After a frame failed or was flagged, after frames that could not be read, or where a frame's flow
+moved further than DIS from scratch reliably finds (``LARGE_FLOW``: such a frame is flagged), it is
 registered again from a predicted pose, with its temporal flow started from that pose's motion
 field (predict, then match what is left; :meth:`vo.odometry.StereoOdometry.track` with ``seed``).
 The starts: the frame's own estimates (a flagged frame: the one reported and the cross-check's
@@ -134,16 +134,17 @@ class FrameRelocaliser:
         result.reason = f"relocalised after {missed} frames that could not be read; " + result.reason
         return True
 
-    def recovered_large_motion(self, tracker, position: int, view: View, result: FrameResult) -> bool:
-        """A frame tracked while its flow moved further than DIS from scratch reliably finds
-        (median above ``LARGE_FLOW`` of the image width): flagged (its estimate may have lost the
-        match unseen) and relocalised where it can be, from its own estimates and the pose its
-        features give; True where it was (its pose replaced, still flagged)."""
+    def recovered(self, tracker, position: int, view: View, result: FrameResult) -> bool:
+        """A flagged frame, or one tracked while its flow moved further than DIS from scratch
+        reliably finds (median above ``LARGE_FLOW`` of the image width: flagged, its estimate may
+        have lost the match unseen): relocalised where it can be, from its own estimates and the
+        pose its features give; True where it was (its pose replaced, still flagged). (A flow
+        that lost the match need not be large: a flagged frame is tried whatever its flow.)"""
         track = result.track
         if track is None:
             return False
         flow_px = float(track.flow.norm(dim=1).median())
-        if flow_px < LARGE_FLOW * view.depth.shape[-1]:
+        if not result.flagged and flow_px < LARGE_FLOW * view.depth.shape[-1]:
             return False
         if not result.flagged:
             tracker.acceptance.flag(result, f"motion beyond what the flow reliably finds ({flow_px:.0f} px median)",

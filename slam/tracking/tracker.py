@@ -209,7 +209,7 @@ class Tracker(SequenceMapping):
         pose = result.pose
         state.velocity = relative(state.pose, pose)
         self.acceptance.after_flags(pose, result, state)
-        if self.recovery.recovered_large_motion(self, position, view, result):
+        if self.recovery.recovered(self, position, view, result):
             self.hand_over(result)
             return result
         if not result.flagged:
