@@ -122,3 +122,27 @@ def test_a_flow_from_a_start_finds_a_shift_that_the_flow_from_scratch_loses_and_
     assert abs(np.median(started[centre][..., 0]) + 60.0) < 0.5
     assert abs(np.median(before[centre][..., 0]) + 60.0) > 5.0
     assert np.array_equal(before, after)
+
+
+def test_at_a_frame_rate_beyond_the_flows_reach_every_bad_frame_is_flagged_and_the_track_holds(tmp_path):
+    """A fast scanning camera (320x256) tracked on every 10th frame: 7-9 mm between frames. Frames
+    whose flow lost the match are flagged and registered again from their own estimate and ORB +
+    PnP (relocalised); no unflagged frame is off by 1 mm or more, and the relocalised ones hold
+    the trajectory (ATE under 1 mm; 0.61 measured, 4.68 without the recovery)."""
+    from benchmarks.benchmark_frame_rate import frame_errors
+    from slam.synth import generate
+
+    data = generate(tmp_path / "fast", "scanning", frames=161, size=(320, 256), seed=5)
+    cfg = load_config(None, ["tracking.mode=frame2frame", "threads=1"])
+    pipe = Pipeline(cfg, open_dataset(data, cfg.data).select("::10"), tmp_path / "run")
+    result = pipe.run(progress=False)
+    records = result.records
+    poses = np.stack([r.pose for r in records])
+    failed = np.array([r.failed for r in records])
+    errors = frame_errors(poses, pipe.dataset.gt_poses, failed)
+    flagged = np.array([r.flagged for r in records])
+    relocalised = [k for k, r in enumerate(records) if r.reference == "relocalised"]
+    assert len(relocalised) >= 3 and all(flagged[relocalised])
+    assert np.nanmax(errors[~flagged & ~failed]) < 1.0
+    assert result.metrics["ate_rmse_mm"] < 1.0
+    assert np.nanmedian(errors[relocalised]) < 1.0

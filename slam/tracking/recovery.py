@@ -1,8 +1,9 @@
 """Recovery: re-acquiring the pose where tracking lost it, in both modes, without a map or a
 pose graph.
 
-After a frame failed or was flagged, after frames that could not be read, or where a frame's flow
-moved further than DIS from scratch reliably finds (``LARGE_FLOW``: such a frame is flagged), it is
+After a frame failed, after frames that could not be read, where a frame's flow moved further
+than DIS from scratch reliably finds (``LARGE_FLOW``: such a frame is flagged), or where a frame was
+flagged while it moved at least half as far, it is
 registered again from a predicted pose, with its temporal flow started from that pose's motion
 field (predict, then match what is left; :meth:`vo.odometry.StereoOdometry.track` with ``seed``).
 The starts: the frame's own estimates (a flagged frame: the one reported and the cross-check's
@@ -35,6 +36,7 @@ from slam.tracking.loop_closure import LOOP_MAX_PLANE_MM, LOOP_MIN_SUPPORT
 from slam.tracking.place_recognition import PlaceRecognition
 from slam.tracking.state import FrameResult
 from vo.geometric_check import point_to_plane_check
+from vo.geometry import motion_field
 from vo.odometry import StereoOdometry, TrackResult, View
 
 log = logging.getLogger("slam")
@@ -135,16 +137,21 @@ class FrameRelocaliser:
         return True
 
     def recovered(self, tracker, position: int, view: View, result: FrameResult) -> bool:
-        """A flagged frame, or one tracked while its flow moved further than DIS from scratch
-        reliably finds (median above ``LARGE_FLOW`` of the image width: flagged, its estimate may
-        have lost the match unseen): relocalised where it can be, from its own estimates and the
-        pose its features give; True where it was (its pose replaced, still flagged). (A flow
-        that lost the match need not be large: a flagged frame is tried whatever its flow.)"""
+        """A frame tracked while its flow moved further than DIS from scratch reliably finds
+        (median above ``LARGE_FLOW`` of the image width: flagged, its estimate may have lost the
+        match unseen), or a flagged one whose flow or estimated motion moved at least half as far
+        (a flow that lost the match need not be large; where the motion is small a flag has other
+        causes and the frame keeps its estimate): relocalised where it can be, from its own
+        estimates and the pose its features give; True where it was (its pose replaced, still
+        flagged)."""
         track = result.track
         if track is None:
             return False
+        width = view.depth.shape[-1]
         flow_px = float(track.flow.norm(dim=1).median())
-        if not result.flagged and flow_px < LARGE_FLOW * view.depth.shape[-1]:
+        if not result.flagged and flow_px < LARGE_FLOW * width:
+            return False
+        if result.flagged and max(flow_px, self.motion_px(view, tracker.state.pose, result.pose)) < LARGE_FLOW / 2 * width:
             return False
         if not result.flagged:
             tracker.acceptance.flag(result, f"motion beyond what the flow reliably finds ({flow_px:.0f} px median)",
@@ -234,6 +241,12 @@ class FrameRelocaliser:
         plane_mm = self.plane_mm(reg.view, cand, reg.relative)
         covariance = None if reg.failed or reg.fit is None else reg.fit.covariance(self.covariance_scale_frame)
         return reg, plane_mm, verify(reg, covariance, plane_mm)
+
+    def motion_px(self, view: View, last_pose: np.ndarray, pose: np.ndarray) -> float:
+        """The median (pixels) of the motion field that ``view`` moved through from ``last_pose``
+        to ``pose`` (``T_wc``, mm) gives."""
+        field = motion_field(view.depth, view.valid, self.odometry.K, np.linalg.inv(last_pose) @ pose)
+        return float(field.norm(dim=1).median())
 
     def plane_mm(self, view: View, cand: Candidate, relative: np.ndarray) -> float:
         """How far ``view``'s depth at ``relative`` (``(4, 4)`` mm, to ``cand``) lies off
