@@ -30,6 +30,20 @@ def _run(data, out, mode):
     return Pipeline(cfg, open_dataset(data, cfg.data), out).run(progress=False)
 
 
+def _copy_with(src_root, dst_root, frames, write) -> None:
+    """A copy of the sequence ``src_root`` in ``dst_root`` whose images of ``frames`` (both sides)
+    are written by ``write(path)``; every other file a link to the original."""
+    dst_root.mkdir()
+    for src in src_root.rglob("*"):
+        dst = dst_root / src.relative_to(src_root)
+        if src.is_dir():
+            dst.mkdir(exist_ok=True)
+        elif src.parent.name == "video_frames" and int(src.name[:6]) in frames:
+            write(dst)
+        else:
+            dst.symlink_to(src)
+
+
 def _motion_error(poses: np.ndarray, gt: np.ndarray, a: int, b: int) -> float:
     """Translation error (mm) of the estimated motion a -> b against the true one."""
     est = np.linalg.inv(poses[a]) @ poses[b]
@@ -40,15 +54,7 @@ def _motion_error(poses: np.ndarray, gt: np.ndarray, a: int, b: int) -> float:
 @pytest.mark.parametrize("mode", ["frame2frame", "frame2model"])
 def test_the_frame_after_unreadable_frames_is_relocalised_and_the_track_goes_on(scanning, tmp_path, mode):
     data = tmp_path / "gap"
-    data.mkdir()
-    for src in scanning.rglob("*"):
-        dst = data / src.relative_to(scanning)
-        if src.is_dir():
-            dst.mkdir(exist_ok=True)
-        elif src.parent.name == "video_frames" and int(src.name[:6]) in GAP:
-            dst.write_bytes(b"lost")
-        else:
-            dst.symlink_to(src)
+    _copy_with(scanning, data, GAP, lambda path: path.write_bytes(b"lost"))
     result = _run(data, tmp_path / "run", mode)
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert m["failed_frames"] == list(GAP)
@@ -70,15 +76,7 @@ def test_a_frame_that_cannot_be_relocalised_stays_failed_and_says_why(scanning, 
     import cv2
 
     data = tmp_path / "dark"
-    data.mkdir()
-    for src in scanning.rglob("*"):
-        dst = data / src.relative_to(scanning)
-        if src.is_dir():
-            dst.mkdir(exist_ok=True)
-        elif src.parent.name == "video_frames" and int(src.name[:6]) in range(30, 33):
-            cv2.imwrite(str(dst), np.zeros((256, 320, 3), np.uint8))
-        else:
-            dst.symlink_to(src)
+    _copy_with(scanning, data, range(30, 33), lambda path: cv2.imwrite(str(path), np.zeros((256, 320, 3), np.uint8)))
     result = _run(data, tmp_path / "run", "frame2frame")
     for k in range(30, 33):
         assert result.records[k].failed and "not relocalised" in result.records[k].reason

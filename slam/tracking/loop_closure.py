@@ -183,8 +183,10 @@ class LoopClosure:
 
     # ------------------------------------------------------------------ steps 3-4
     @staticmethod
-    def verify(failed: bool, support: float, covariance: Optional[np.ndarray], plane_mm: float) -> str:
-        """Why a registration against the inactive model is not a loop ('' where it is one)."""
+    def verify(failed: bool, support: float, covariance: Optional[np.ndarray], plane_mm: float,
+               max_sigma_mm: float = LOOP_MAX_SIGMA_MM) -> str:
+        """Why a registration against the inactive model is not a loop ('' where it is one);
+        ``max_sigma_mm``: the largest spread of the translation taken (a loop's by default)."""
         if failed:
             return "the registration failed"
         if covariance is None:
@@ -192,10 +194,10 @@ class LoopClosure:
         if not support >= LOOP_MIN_SUPPORT:
             return f"support {support:.2f} < {LOOP_MIN_SUPPORT}"
         sigma_t = float(np.sqrt(max(np.trace(covariance[:3, :3]), 0.0)))
-        if sigma_t > LOOP_MAX_SIGMA_MM:
+        if sigma_t > max_sigma_mm:
             return f"uncertain (sigma_t {sigma_t:.2f} mm)"
         if not plane_mm <= LOOP_MAX_PLANE_MM:
-            return f"the depth lies {plane_mm:.2f} mm off the rendered surface"
+            return f"the depth lies {plane_mm:.2f} mm off the reference's surface"
         return ""
 
     def propose(self, position: int, anchor_frame: int, relative: np.ndarray,

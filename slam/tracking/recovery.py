@@ -11,8 +11,9 @@ other) and the last motion continued, against the last frame; and the pose PnP g
 recent frame whose ORB features it matches best
 (:class:`slam.tracking.place_recognition.PlaceRecognition`: ratio test, RANSAC PnP on the frame's
 stereo depth; the last frame and :class:`RecentFrames`, a few good frames before it). Each
-registration is verified (:func:`verify`: support, the covariance's spread, and how far the
-frame's depth lies off the candidate's surface); of those that pass, the one whose depth lies
+registration is verified as a loop is, with a wider spread allowed
+(:meth:`slam.tracking.loop_closure.LoopClosure.verify`: support, the covariance's spread, and how
+far the frame's depth lies off the candidate's surface); of those that pass, the one whose depth lies
 closest to the candidate's surface is kept, and for a flagged frame only where it lies closer than
 the frame's own estimate. The frame takes that pose, is flagged (reference ``relocalised``: a
 registration across a gap or a long baseline; not fused, nor are the frames before it that were
@@ -32,7 +33,7 @@ from typing import Optional
 
 import numpy as np
 
-from slam.tracking.loop_closure import LOOP_MAX_PLANE_MM, LOOP_MIN_SUPPORT
+from slam.tracking.loop_closure import LoopClosure
 from slam.tracking.place_recognition import PlaceRecognition
 from slam.tracking.state import FrameResult
 from vo.geometric_check import point_to_plane_check
@@ -53,7 +54,9 @@ LARGE_FLOW = 1 / 10
 # much, at most PASSES times (from a start 3-4 mm off, measured at 1.25 fps: 3.1 -> 0.54 -> 0.49 mm)
 PASSES = 3
 CONVERGED_MM = 0.25
-# the largest spread of a relocalising registration (a loop's is 1.5 mm; see verify)
+# the largest spread of a relocalising registration (a loop's is 1.5 mm): across a long baseline
+# the residuals grow with the change of view while the pose holds (from 12 mm away, measured
+# 0.7 mm off with a spread of 4.2 mm); the surface (point to plane) is the sharper judge there
 MAX_SIGMA_MM = 6.0
 
 
@@ -240,7 +243,7 @@ class FrameRelocaliser:
             start = reg.relative        # (what is left to find is smaller: match again from here)
         plane_mm = self.plane_mm(reg.view, cand, reg.relative)
         covariance = None if reg.failed or reg.fit is None else reg.fit.covariance(self.covariance_scale_frame)
-        return reg, plane_mm, verify(reg, covariance, plane_mm)
+        return reg, plane_mm, LoopClosure.verify(reg.failed, reg.support, covariance, plane_mm, MAX_SIGMA_MM)
 
     def motion_px(self, view: View, last_pose: np.ndarray, pose: np.ndarray) -> float:
         """The median (pixels) of the motion field that ``view`` moved through from ``last_pose``
@@ -254,23 +257,6 @@ class FrameRelocaliser:
         check = point_to_plane_check(view.depth, view.valid, cand.view.depth, cand.view.valid, self.odometry.K,
                                      relative)
         return check.residual_mm if check is not None else float("nan")
-
-
-def verify(reg: TrackResult, covariance: Optional[np.ndarray], plane_mm: float) -> str:
-    """Why a relocalising registration is not taken ('' where it is): failed, too little support,
-    too uncertain, or the frame's depth off the candidate's surface (a loop's limits, but the
-    spread: across a long baseline the residuals grow with the change of view while the pose
-    holds: from 12 mm away, measured 0.7 mm off with a spread of 4.2 mm)."""
-    if reg.failed or covariance is None:
-        return "the registration failed"
-    if not reg.support >= LOOP_MIN_SUPPORT:
-        return f"support {reg.support:.2f} < {LOOP_MIN_SUPPORT}"
-    sigma_t = float(np.sqrt(max(np.trace(covariance[:3, :3]), 0.0)))
-    if sigma_t > MAX_SIGMA_MM:
-        return f"uncertain (sigma_t {sigma_t:.2f} mm)"
-    if not plane_mm <= LOOP_MAX_PLANE_MM:
-        return f"the depth lies {plane_mm:.2f} mm off the candidate's surface"
-    return ""
 
 
 def distinct(motions: list, mm: float = 0.5) -> tuple:
