@@ -122,6 +122,14 @@ class FrameRelocaliser:
         self.covariance_scale_frame = covariance_scale_frame
         self.recent = RecentFrames(odometry.K.cpu().numpy(), width)
         self.recoveries = 0
+        self.after_gap: Optional[int] = None      # the frame after a gap that was not relocalised
+        self.model_from: Optional[int] = None     # the first frame whose surfels the model holds
+
+    def active_from(self, position: int) -> Optional[int]:
+        """The first frame whose surfels the model at ``position`` holds (None: all): after a gap
+        that was not recovered, the map from before it is set aside (its poses and the new ones
+        no longer agree)."""
+        return self.model_from
 
     def remember(self, position: int, view: View, pose: np.ndarray, result: FrameResult) -> None:
         """Keep a tracked frame as a candidate unless it was flagged (a relocalised one is kept)."""
@@ -138,11 +146,24 @@ class FrameRelocaliser:
             log.info("frame %d after %d frames that could not be read: not relocalised (%s); tracked",
                      position, missed, result.reason)
             result.reason = ""
+            self.after_gap = position
             return False
         result.reason = f"relocalised after {missed} frames that could not be read; " + result.reason
         return True
 
     def recovered(self, tracker, position: int, view: View, result: FrameResult) -> bool:
+        """As :meth:`recover`; where the frame after a gap stays flagged, the map from before the
+        gap is set aside (:meth:`active_from`): the model view would pull the new poses towards
+        surfaces fused where the track was before the gap."""
+        if self.recover(tracker, position, view, result):
+            return True
+        if result.flagged and position == self.after_gap:
+            self.model_from = position
+            result.reason += "; the map before the gap set aside"
+            log.warning("frame %d after a gap was not recovered: the map before it is set aside", position)
+        return False
+
+    def recover(self, tracker, position: int, view: View, result: FrameResult) -> bool:
         """A frame tracked while its flow moved further than DIS from scratch reliably finds
         (median above ``LARGE_FLOW`` of the image width: flagged, its estimate may have lost the
         match unseen), or a flagged one whose flow or estimated motion moved at least half as far

@@ -152,7 +152,7 @@ class Tracker(SequenceMapping):
         cfg = self.config
         depth_filter = DepthFilter(cfg.depth.temporal_still_mm) if self.odometry.filters_depth() else NoDepthFilter()
         if frame2model:
-            return ModelViewReference(depth_filter, self._render, self.odometry, self.graph.active_from,
+            return ModelViewReference(depth_filter, self._render, self.odometry, self.recovery.active_from,
                                       cfg.tracking.refine_passes, cfg.tracking.min_model_coverage)
         if cfg.tracking.keyframe_gap > 1:
             return StillCameraKeyframes(depth_filter, cfg.tracking.keyframe_gap, cfg.tracking.keyframe_still_mm)
@@ -213,7 +213,7 @@ class Tracker(SequenceMapping):
             self.hand_over(result)
             return result
         if not result.flagged:
-            self.mapping.fuse(track.view, result.track.w3d, pose, position, self.graph.active_from(position))
+            self.mapping.fuse(track.view, result.track.w3d, pose, position, self.recovery.active_from(position))
         self.advance(position, track.view, pose, result)
         self.recovery.remember(position, track.view, pose, result)
         self.graph.add(self, position, track.view, pose, result)
@@ -223,7 +223,7 @@ class Tracker(SequenceMapping):
     def first_frame(self, position: int, view: View) -> FrameResult:
         """The first frame: fused at the initial pose; the graph starts at it."""
         result = FrameResult(self.state.pose, reference="first")
-        self.mapping.fuse(view, None, self.state.pose, position, self.graph.active_from(position))
+        self.mapping.fuse(view, None, self.state.pose, position, self.recovery.active_from(position))
         self.advance(position, view, self.state.pose, result)
         self.recovery.remember(position, view, self.state.pose, result)
         self.graph.start(self, position, view)
@@ -253,7 +253,7 @@ class Tracker(SequenceMapping):
     def _forget_view(self, pose: np.ndarray) -> int:
         """Remove the active surfels the view sees from ``pose`` (the cross-check's rebuild)."""
         return self.map.forget_view(self.odometry.K, torch.as_tensor(pose, dtype=torch.float32), self.camera.height,
-                                    self.camera.width, seen_from=self.graph.active_from(self.state.position))
+                                    self.camera.width, seen_from=self.recovery.active_from(self.state.position))
 
 
 class KnownPoseMapper(SequenceMapping):
