@@ -43,8 +43,8 @@ def _run(data, tmp_path, name, cross_check: float, corrupt: range | None = None,
     odo, tracker = pipe.odometry, pipe.tracker
     flow, track = odo.correspondences, tracker.track
 
-    def corrupted(cur, against, round_trip=None, ahead=None):
-        corr = flow(cur, against, round_trip, ahead)
+    def corrupted(cur, against, round_trip=None, ahead=None, motion=None):
+        corr = flow(cur, against, round_trip, ahead, motion)
         if corrupt is not None and against.from_model and tracker.state.position + 1 in corrupt:
             shifted = corr.flow.clone()
             shifted[:, 0] += 4.0

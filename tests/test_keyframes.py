@@ -30,10 +30,11 @@ def _run(data, tmp_path, name, overrides, fail_at=None, still_mm=None, init=None
         frame_of[id(view)] = len(views) - 1
         return view
 
-    def spy(cur, ref, init=None, filter_against=None, ahead=None):
-        result = track(cur, ref, init, filter_against, ahead)
+    def spy(cur, ref, init=None, filter_against=None, ahead=None, seed=False):
+        result = track(cur, ref, init, filter_against, ahead, seed)
         k = frame_of[id(cur.origin)]
-        calls.append((k, frame_of[id(ref.origin)], None if init is None else np.array(init), result.relative))
+        if not seed:        # (the tracking calls; a recovery's registrations start from a prediction)
+            calls.append((k, frame_of[id(ref.origin)], None if init is None else np.array(init), result.relative))
         return dataclasses.replace(result, failed=True, reason="forced") if k == fail_at else result
 
     pipe._make_view = numbered

@@ -1,7 +1,8 @@
 """Recovery: re-acquiring the pose where tracking lost it, in both modes, without a map or a
 pose graph.
 
-After a frame failed, after frames that could not be read, where a frame's flow moved further
+After a frame failed, after five or more frames that could not be read (fewer, the flow bridges:
+the frame is tracked, and recovered as any other where it fails or is flagged), where a frame's flow moved further
 than DIS from scratch reliably finds (``LARGE_FLOW``: such a frame is flagged), or where a frame was
 flagged while it moved at least half as far, it is
 registered again from a predicted pose, with its temporal flow started from that pose's motion
@@ -33,6 +34,7 @@ from typing import Optional
 
 import numpy as np
 
+from slam.tracking.graph import RELOCALISE_AFTER_MISSED
 from slam.tracking.loop_closure import LoopClosure
 from slam.tracking.place_recognition import PlaceRecognition
 from slam.tracking.state import FrameResult
@@ -137,10 +139,11 @@ class FrameRelocaliser:
             self.recent.add(position, view, pose)
 
     def relocalised_after_gap(self, tracker, position: int, view: View, result: FrameResult) -> bool:
-        """After frames that could not be read, relocalise the frame before tracking it (the camera
-        may have moved further than the flow finds); True where it was."""
+        """After ``RELOCALISE_AFTER_MISSED`` or more frames that could not be read (or failed),
+        relocalise the frame before tracking it (the camera may have moved further than the flow
+        finds); True where it was."""
         missed = position - tracker.state.position - 1
-        if missed < 1:
+        if missed < RELOCALISE_AFTER_MISSED:       # (a few dropped frames: the flow bridges them)
             return False
         if not self.relocalise(tracker, position, view, result):
             log.info("frame %d after %d frames that could not be read: not relocalised (%s); tracked",
