@@ -239,3 +239,29 @@ def test_pyramid_of_tiny_maps_keeps_size_one_dims():
     assert [tuple(c.shape[-2:]) for c in block.corr_pyramid] == [(3, 5), (1, 2), (1, 1), (1, 1)]
     out = block(torch.rand(1, 2, 3, 5) * 4)
     assert out.shape == (1, 4 * 25, 3, 5) and torch.isfinite(out).all()
+
+
+def test_backend_starts_from_a_given_flow_on_its_eighth_grid(tmp_path):
+    """A start ``(B, 2, H, W)`` in pixels reaches RAFT as ``flow_init`` on the padded 1/8 grid in
+    that grid's pixels (a constant 16 px start: 2 px there), and changes the estimate."""
+    ckpt = tmp_path / "raft-small.pth"
+    _save_random_checkpoint(ckpt, small=True)
+    est = RaftFlow(ckpt, small=True, iters=1)
+    seen = {}
+    forward = est.model.forward
+
+    def spy(*args, **kwargs):
+        seen["flow_init"] = kwargs.get("flow_init")
+        return forward(*args, **kwargs)
+
+    est.model.forward = spy
+    im1, im2 = torch.rand(1, 3, 50, 70), torch.rand(1, 3, 50, 70)      # padded to 56 x 72 inside
+    start = torch.zeros(1, 2, 50, 70)
+    start[:, 0] = 16.0
+    started = est.flow(im1, im2, start)
+    assert seen["flow_init"].shape == (1, 2, 7, 9)
+    assert torch.allclose(seen["flow_init"][:, 0], torch.full((1, 7, 9), 2.0))
+    assert torch.allclose(seen["flow_init"][:, 1], torch.zeros(1, 7, 9))
+    scratch = est.flow(im1, im2)
+    assert seen["flow_init"] is None
+    assert (started[:, 0] - scratch[:, 0]).mean() > 8.0

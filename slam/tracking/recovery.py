@@ -1,10 +1,10 @@
 """Recovery: re-acquiring the pose where tracking lost it, in both modes, without a map or a
 pose graph.
 
-After a frame failed, after five or more frames that could not be read (fewer, the flow bridges:
-the frame is tracked, and recovered as any other where it fails or is flagged), where a frame's flow moved further
-than DIS from scratch reliably finds (``LARGE_FLOW``: such a frame is flagged), or where a frame was
-flagged while it moved at least half as far, it is
+After a frame failed, after five or more frames that could not be read (after fewer the flow
+bridges the gap: the frame is tracked, and recovered as any other where it fails or is flagged),
+where a frame's flow moved further than DIS from scratch reliably finds (``LARGE_FLOW``: such a
+frame is flagged), or where a frame was flagged while it moved at least half as far, it is
 registered again from a predicted pose, with its temporal flow started from that pose's motion
 field (predict, then match what is left; :meth:`vo.odometry.StereoOdometry.track` with ``seed``).
 The starts: the frame's own estimates (a flagged frame: the one reported and the cross-check's
@@ -114,16 +114,12 @@ class FrameRelocaliser:
         odometry: the VO core (the dense registration).
         covariance_scale_frame: ``health.covariance_scale_frame`` (the registration's covariance).
         width: image width (pixels; the RANSAC threshold scales with it).
-
-    Attributes:
-        recoveries: frames relocalised.
     """
 
     def __init__(self, odometry: StereoOdometry, covariance_scale_frame: float, width: int):
         self.odometry = odometry
         self.covariance_scale_frame = covariance_scale_frame
         self.recent = RecentFrames(odometry.K.cpu().numpy(), width)
-        self.recoveries = 0
         self.after_gap: Optional[int] = None      # the frame after a gap that was not relocalised
         self.model_from: Optional[int] = None     # the first frame whose surfels the model holds
 
@@ -134,8 +130,9 @@ class FrameRelocaliser:
         return self.model_from
 
     def remember(self, position: int, view: View, pose: np.ndarray, result: FrameResult) -> None:
-        """Keep a tracked frame as a candidate unless it was flagged (a relocalised one is kept)."""
-        if not result.flagged or result.reference == "relocalised":
+        """Keep a tracked frame as a candidate unless it was flagged (a relocalised frame is kept
+        by :meth:`relocalise`)."""
+        if not result.flagged:
             self.recent.add(position, view, pose)
 
     def relocalised_after_gap(self, tracker, position: int, view: View, result: FrameResult) -> bool:
@@ -181,8 +178,10 @@ class FrameRelocaliser:
         flow_px = float(track.flow[..., ::GATE_STRIDE, ::GATE_STRIDE].norm(dim=1).median())
         if not result.flagged and flow_px < LARGE_FLOW * width:
             return False
-        if result.flagged and max(flow_px, self.motion_px(view, tracker.state.pose, result.pose)) < LARGE_FLOW / 2 * width:
-            return False
+        if result.flagged:
+            moved_px = max(flow_px, self.motion_px(view, tracker.state.pose, result.pose))
+            if moved_px < LARGE_FLOW / 2 * width:
+                return False
         if not result.flagged:
             tracker.acceptance.flag(result, f"motion beyond what the flow reliably finds ({flow_px:.0f} px median)",
                                     model_disagrees=False)
@@ -213,7 +212,8 @@ class FrameRelocaliser:
         (``(4, 4)`` mm, predictions of its motion from the last frame) and against
         the recent frame its features match best from the pose PnP gives, each with its flow
         started from that pose's motion field; of the registrations that pass the verification
-        the one with the smallest spread is kept. On success ``result`` holds the pose,
+        the one whose depth lies closest to its candidate's surface is kept (with ``estimates``,
+        only where closer than the first estimate's). On success ``result`` holds the pose,
         ``reference`` ``relocalised`` (flagged: not fused) and the registration, and the frame is
         the tracker's last frame; else ``result.reason`` says why not. Timed as ``relocalise``."""
         t0 = time.perf_counter()
@@ -253,7 +253,6 @@ class FrameRelocaliser:
         tracker.advance(position, reg.view, pose, result)
         tracker.acceptance.reset()
         self.recent.add(position, reg.view, pose)
-        self.recoveries += 1
         log.info("frame %d relocalised against frame %d: %.2f mm from the last pose", position, cand.position, moved)
         result.time("relocalise", t0)
         return True
