@@ -3,23 +3,25 @@ of black or unreadable frames in the middle.
 
     .venv/bin/python tools/benchmark_frame_rate.py [--scenarios rigid scanning] [--seeds 9201 9202]
         [--frames 240] [--size 640x512] [--steps 1 5 10 20] [--gaps 5 10] [--gap-kinds black unreadable]
-        [--gap-step 5] [--modes frame2frame frame2model] [--workers 2] [--out runs/frame_rate]
-        [--set KEY=VALUE ...]
+        [--gap-step 5] [--bursts 20] [--burst-frames 6] [--modes frame2frame frame2model] [--workers 2]
+        [--out runs/frame_rate] [--set KEY=VALUE ...]
 
 Each sequence is rendered once at 25 fps and tracked on every ``S``-th frame (``--frames ::S``:
 at step 5 the camera moves five times as far between frames; the frame rate, read off the
 timestamps, scales the per-frame thresholds). A gap: ``G`` frames of the sequence at step
 ``--gap-step`` (default 5 fps) from its middle on, replaced by black images (the light off, the lens
 covered) or by files that cannot be read (frames dropped), in a copy of the sequence that links
-every other file.
+every other file. A burst: the motion speeding up and slowing down again, tracked at ``--gap-step``
+with ``--burst-frames`` frames at step ``B`` in the middle (``--frames 0:60:5,60:180:20,180::5``;
+the frame rate, the median step, stays that of ``--gap-step``).
 
 Per row: ATE-RMSE of every frame and of the frames tracked (a failed frame keeps the last good
 pose, so a gap's frames count in the first as if the camera stood still); each frame's error, the translation error of its motion from the last frame
 that was tracked (not failed) against the ground truth's; the frames flagged and failed; the
 largest error and the count above 1 mm among frames neither flagged nor failed (the silent
-errors, the worst thing a tracker can do); recoveries (frames relocalised); for a gap, the first
-frame after it (its error, and whether it was flagged or failed) and how many frames after the gap
-the first good frame came (unflagged, tracked, error under 1 mm). Writes ``frame_rate.md`` and
+errors, the worst thing a tracker can do); recoveries (frames relocalised); for a gap or a burst,
+the first frame after it (its error, and whether it was flagged or failed) and how many frames
+after it the first good frame came (unflagged, tracked, error under 1 mm). Writes ``frame_rate.md`` and
 ``frame_rate.json``.
 """
 from __future__ import annotations
@@ -34,6 +36,7 @@ from benchmarks.runs import one_thread_config, pipeline, run_in_workers, synthet
 
 STEPS = (1, 5, 10, 20)          # 25, 5, 2.5 and 1.25 fps
 GAPS = (5, 10)
+BURSTS = (20,)                  # 1.25 fps for a while in a 5-fps sequence
 GAP_KINDS = ("black", "unreadable")
 SILENT_MM = 1.0                 # a frame's error above this, unflagged, is a silent error
 
@@ -121,7 +124,7 @@ def run_case(job: dict) -> dict:
     from slam.evaluation.metrics import align, ate_rmse
 
     cfg = one_thread_config([f"tracking.mode={job['mode']}"], job["extra"])
-    pipe = pipeline(cfg, job["data"], job["out"], frames=f"::{job['step']}")
+    pipe = pipeline(cfg, job["data"], job["out"], frames=job["frames"] or f"::{job['step']}")
     result = pipe.run(progress=False)
     records = result.records
     poses = np.stack([r.pose for r in records])
@@ -135,7 +138,7 @@ def run_case(job: dict) -> dict:
         aligned, _ = align(truth[tracked], poses[tracked])
         ate_tracked = ate_rmse(truth[tracked], aligned)
     relocalised = [k for k, r in enumerate(records) if r.reference == "relocalised"]
-    return {**{k: job[k] for k in ("scenario", "seed", "mode", "step", "gap", "kind", "gap_from")},
+    return {**{k: job[k] for k in ("scenario", "seed", "mode", "step", "gap", "kind", "gap_from", "burst", "after")},
             "ate_rmse_mm": result.metrics.get("ate_rmse_mm"), "ate_tracked_mm": ate_tracked, "frames": len(records),
             "errors_mm": [None if np.isnan(e) else round(float(e), 5) for e in errors],
             "flagged": np.flatnonzero(flagged).tolist(), "failed": np.flatnonzero(failed).tolist(),
@@ -152,8 +155,8 @@ def summary(case: dict) -> dict:
            "silent_max": float(silent.max()) if silent.size else 0.0,
            "silent_over": int((silent > SILENT_MM).sum()), "recoveries": len(case["relocalised"]),
            "frames": case["frames"]}
-    if case["gap"]:
-        after = case["gap_from"] + case["gap"]       # the first frame after the gap (selected positions)
+    if case.get("after") is not None:
+        after = case["after"]                        # the first frame after the gap or burst (selected positions)
         state = "failed" if after in case["failed"] else "flagged" if after in case["flagged"] else "tracked"
         row["first_after"] = (float(errors[after]) if np.isfinite(errors[after]) else None, state)
         good = [k for k in range(after, len(errors))
@@ -168,14 +171,19 @@ def _fmt(x, spec=".3f") -> str:
 
 def table(cases: list[dict], flows: dict) -> str:
     head = ["sequence", "mode", "condition", "flow px median / p95", "ATE mm (tracked frames)", "flagged / failed / frames",
-            "silent: max mm (> 1 mm)", "recoveries", "first after the gap: mm (state)", "good again after"]
+            "silent: max mm (> 1 mm)", "recoveries", "first after the gap or burst: mm (state)", "good again after"]
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for c in cases:
         s = summary(c)
-        cond = f"{25 / c['step']:g} fps" if not c["gap"] else f"gap {c['gap']} {c['kind']} at {25 / c['step']:g} fps"
-        med, p95 = flows[(c["scenario"], c["seed"], c["step"])]
-        first = "-" if not c["gap"] else f"{_fmt(s['first_after'][0])} ({s['first_after'][1]})"
-        back = "-" if not c["gap"] else (f"{s['back_after']} frames" if s["back_after"] else "never")
+        cond = f"{25 / c['step']:g} fps"
+        if c["gap"]:
+            cond = f"gap {c['gap']} {c['kind']} at {cond}"
+        elif c.get("burst"):
+            cond = f"{c['after'] - c['gap_from'] - 1} frames at {25 / c['burst']:g} fps in {cond}"
+        med, p95 = flows[(c["scenario"], c["seed"], c.get("burst") or c["step"])]
+        ended = c.get("after") is not None
+        first = "-" if not ended else f"{_fmt(s['first_after'][0])} ({s['first_after'][1]})"
+        back = "-" if not ended else (f"{s['back_after']} frames" if s["back_after"] else "never")
         lines.append("| " + " | ".join([
             f"{c['scenario']} s{c['seed']}", c["mode"], cond, f"{med:.1f} / {p95:.1f}", f"{_fmt(s['ate'])} ({_fmt(s['ate_tracked'])})",
             f"{s['flagged']} / {s['failed']} / {s['frames']}", f"{s['silent_max']:.2f} ({s['silent_over']})",
@@ -185,7 +193,8 @@ def table(cases: list[dict], flows: dict) -> str:
 
 def jobs_for(data: Path, out: Path, scenario: str, seed: int, args) -> list[dict]:
     """The runs of one sequence: every step, then every gap at ``args.gap_step``."""
-    base = {"scenario": scenario, "seed": seed, "extra": args.set, "gap": 0, "kind": "", "gap_from": None}
+    base = {"scenario": scenario, "seed": seed, "extra": args.set, "gap": 0, "kind": "", "gap_from": None,
+            "burst": 0, "after": None, "frames": None}
     jobs = []
     for step in args.steps:
         for mode in args.modes:
@@ -201,9 +210,26 @@ def jobs_for(data: Path, out: Path, scenario: str, seed: int, args) -> list[dict
             copy = with_gap(data, out / "data" / f"{data.name}_gap{gap}_{kind}", blanked, kind)
             for mode in args.modes:
                 jobs.append({**base, "mode": mode, "step": args.gap_step, "gap": gap, "kind": kind,
-                             "gap_from": start, "data": str(copy),
+                             "gap_from": start, "after": start + gap, "data": str(copy),
                              "out": str(out / "runs" / f"{copy.name}_{mode}")})
+    for burst in args.bursts:
+        frames, start = burst_selection(args.frames, args.gap_step, burst, args.burst_frames)
+        for mode in args.modes:
+            jobs.append({**base, "mode": mode, "step": args.gap_step, "burst": burst, "frames": frames,
+                         "gap_from": start, "after": start + args.burst_frames + 1, "data": str(data),
+                         "out": str(out / "runs" / f"{data.name}_{mode}_burst{burst}")})
     return jobs
+
+
+def burst_selection(frames: int, step: int, burst: int, count: int) -> tuple[str, int]:
+    """The ``--frames`` selection of a sequence of ``frames`` tracked at ``step`` with ``count``
+    motions at step ``burst`` in its middle, and the selected position of the frame they start from
+    (the first frame after the burst, the first whose motion is slow again, is ``count + 1`` later)."""
+    span = count * burst
+    first = (frames - span) // 2 // step * step
+    if first < 2 * step or first + span >= frames - 2 * step:
+        raise SystemExit(f"--burst-frames {count} at step {burst}: a sequence of {frames} frames is too short")
+    return f"0:{first}:{step},{first}:{first + span}:{burst},{first + span}::{step}", len(range(0, first, step))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -212,10 +238,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", nargs="+", type=int, default=[9201, 9202])
     ap.add_argument("--frames", type=int, default=240)
     ap.add_argument("--size", default="640x512")
-    ap.add_argument("--steps", nargs="+", type=int, default=list(STEPS))
+    ap.add_argument("--steps", nargs="*", type=int, default=list(STEPS))
     ap.add_argument("--gaps", nargs="*", type=int, default=list(GAPS))
     ap.add_argument("--gap-kinds", nargs="+", choices=GAP_KINDS, default=list(GAP_KINDS))
-    ap.add_argument("--gap-step", type=int, default=5, help="the step the gap sequences are tracked at")
+    ap.add_argument("--gap-step", type=int, default=5, help="the step the gap and burst sequences are tracked at")
+    ap.add_argument("--bursts", nargs="*", type=int, default=list(BURSTS), help="the steps of the bursts")
+    ap.add_argument("--burst-frames", type=int, default=6, help="how many frames a burst has")
     ap.add_argument("--modes", nargs="+", default=["frame2frame", "frame2model"])
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--out", default="runs/frame_rate")
@@ -230,7 +258,7 @@ def main(argv: list[str] | None = None) -> None:
         for seed in args.seeds:
             data = synthetic(out / "data" / f"{scenario}_s{seed}_{size[0]}x{size[1]}_{args.frames}", scenario,
                              frames=args.frames, size=size, seed=seed, progress=False)
-            for step in sorted({*args.steps, args.gap_step}):
+            for step in sorted({*args.steps, *args.bursts, args.gap_step}):
                 flows[(scenario, seed, step)] = flow_px(data, step)
             jobs += jobs_for(data, out, scenario, seed, args)
     cases = run_in_workers(run_case, jobs, args.workers)

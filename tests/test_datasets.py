@@ -188,7 +188,8 @@ def test_parse_frames():
     assert parse_frames("5:", 7) == [5, 6]
     assert parse_frames(":2", 7) == [0, 1]
     assert parse_frames("-2:", 7) == [5, 6]
-    for bad in ("a:b", "1:2:0", "::-1", "0", "1:2:3:4", "x", "20:"):
+    assert parse_frames("0:10:5,10:30:10,30::5", 40) == [0, 5, 10, 20, 30, 35]
+    for bad in ("a:b", "1:2:0", "::-1", "0", "1:2:3:4", "x", "20:", "0:5,3:8", "0:5,,6:8", "5:8,0:2"):
         with pytest.raises(ConfigError):
             parse_frames(bad, 10)
 

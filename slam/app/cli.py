@@ -41,7 +41,7 @@ def _add_run_options(p: argparse.ArgumentParser, out_default: str) -> None:
                                  "without --overwrite")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the results of an earlier run in --out (its files are removed first)")
-    p.add_argument("--frames", help="frame selection: N (first N) or A:B:S")
+    p.add_argument("--frames", help="frame selection: N (first N), A:B:S, or A:B:S segments joined by commas")
     p.add_argument("--weights", choices=["learned", "constant"], help="learned weight maps or constant weights")
     p.add_argument("--residuals", choices=["2d3d", "2d", "3d"], help="residuals used (ablation)")
     p.add_argument("--rerun", metavar="FILE.rrd", help="save a rerun recording")

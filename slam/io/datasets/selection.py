@@ -5,9 +5,12 @@
 * ``None`` or ``""``: all frames;
 * ``N`` (int or ``"N"``): the first N frames (all of them if the sequence is shorter);
 * ``"A:B"`` / ``"A:B:S"``: Python slice semantics over ``range(n)`` (any part may be empty,
-  negative values count from the end), e.g. ``"2:8:2"`` -> 2, 4, 6; ``"::5"`` every 5th frame.
+  negative values count from the end), e.g. ``"2:8:2"`` -> 2, 4, 6; ``"::5"`` every 5th frame;
+* segments joined by commas, in time order: ``"0:100:5,100:180:20,180::5"`` every 5th frame with
+  every 20th from 100 to 180 (a stretch of faster motion).
 
-A spec that is malformed, has a zero or negative step, or selects nothing raises ConfigError.
+A spec that is malformed, has a zero or negative step, selects nothing, or whose segments overlap
+or go back in time raises ConfigError.
 """
 from __future__ import annotations
 
@@ -28,6 +31,8 @@ def parse_frames(spec: str | int | None, n: int) -> list[int]:
     text = str(spec).strip()
     if not text:
         return list(range(n))
+    if "," in text:
+        return _segments(text, n)
     if ":" not in text:
         try:
             count = int(text)
@@ -55,4 +60,18 @@ def parse_frames(spec: str | int | None, n: int) -> list[int]:
     indices = list(range(n))[slice(start, stop, step)]
     if not indices:
         raise ConfigError(f"frames: '{text}' selects no frames of the {n} in the sequence")
+    return indices
+
+
+def _segments(text: str, n: int) -> list[int]:
+    """The frames of comma-separated segments, each a spec of its own, strictly in time order."""
+    indices: list[int] = []
+    for part in text.split(","):
+        if not part.strip():
+            raise ConfigError(f"frames: an empty segment in '{text}'")
+        segment = parse_frames(part.strip(), n)
+        if indices and segment[0] <= indices[-1]:
+            raise ConfigError(f"frames: segment '{part.strip()}' in '{text}' starts at frame {segment[0]}, "
+                              f"not after the last one selected ({indices[-1]})")
+        indices += segment
     return indices
