@@ -27,7 +27,7 @@ def test_frame_errors_measure_each_motion_from_the_last_tracked_frame():
     assert errors[2] == pytest.approx(0.3, abs=1e-9)
     assert errors[4] == pytest.approx(0.4, abs=1e-9)
     case = {"errors_mm": [None if np.isnan(e) else e for e in errors], "flagged": [2], "failed": [3],
-            "relocalised": [], "ate_rmse_mm": 0.1, "frames": 5, "gap": 1, "gap_from": 3}
+            "relocalised": [], "ate_rmse_mm": 0.1, "frames": 5, "gap": 1, "gap_from": 3, "after": 4}
     row = summary(case)
     # the flagged frame's 0.3 mm is not silent; the first frame after the one-frame gap errs by 0.4
     assert row["silent_max"] == pytest.approx(0.4) and row["silent_over"] == 0
@@ -52,10 +52,16 @@ def test_gaps_are_written_to_disk_and_tracked_as_failed(synth_dir, tmp_path):
 
     out = tmp_path / "bench"
     main(["--scenarios", "scanning", "--seeds", "3", "--frames", "24", "--size", "160x128", "--steps", "1", "2",
-          "--gaps", "3", "--gap-step", "2", "--modes", "frame2frame", "--workers", "1", "--out", str(out)])
+          "--gaps", "3", "--gap-step", "2", "--bursts", "4", "--burst-frames", "2", "--modes", "frame2frame",
+          "--workers", "1", "--out", str(out)])
     report = json.loads((out / "frame_rate.json").read_text())
-    cases = {(c["step"], c["gap"], c["kind"]): c for c in report["cases"]}
-    assert set(cases) == {(1, 0, ""), (2, 0, ""), (2, 3, "black"), (2, 3, "unreadable")}
+    cases = {(c["step"], c["gap"], c["kind"], c["burst"]): c for c in report["cases"]}
+    assert set(cases) == {(1, 0, "", 0), (2, 0, "", 0), (2, 3, "black", 0), (2, 3, "unreadable", 0), (2, 0, "", 4)}
+    # the burst: frames 0-8 every 2nd, 8-16 every 4th, then every 2nd again (10 frames, 12.5 fps)
+    burst = cases[(2, 0, "", 4)]
+    assert burst["frames"] == 10 and burst["gap_from"] == 4 and burst["after"] == 7
+    assert "2 frames at 6.25 fps in 12.5 fps" in (out / "frame_rate.md").read_text()
+    cases = {k[:3]: c for k, c in cases.items() if not k[3]}
     assert cases[(1, 0, "")]["frames"] == 24 and cases[(2, 0, "")]["frames"] == 12
     for kind in ("black", "unreadable"):
         case = cases[(2, 3, kind)]
