@@ -39,9 +39,7 @@ from vo.geometry import (backproject, flow_grid, lands_inside, motion_field, pix
                          sample_valid_by_flow)
 from vo.health import PoseFit, pose_fit, weighted_median
 from vo.lie import rotation_angle_deg
-from vo.geometric_check import MAX_GAP_MM
-from vo.normals import surface_normals
-from vo.residuals import PLANE_WEIGHT, PoseProblem, Surface, residuals
+from vo.residuals import PoseProblem, residuals
 from vo.solver import TRACKING, SolverResult, solve_pose
 from vo.weights import TrackingNetworks, WeightInputs, constant_weights, load_tracking_networks
 
@@ -75,9 +73,6 @@ class View:
             flow (:meth:`StereoOdometry.filter_depth`), else None.
         base: the view this one was made from by filtering its depth (the same images), else
             None: flows computed for the one serve the other (:attr:`origin`).
-        normals: ``(1, 3, H, W)`` unit normals of the surface (a model view's, rendered), zero
-            where there is none, or None: fitted to the depth where needed
-            (:func:`vo.normals.surface_normals`).
     """
 
     image: torch.Tensor
@@ -92,7 +87,6 @@ class View:
     image_of: "View | None" = field(default=None, repr=False)
     stereo_depth: torch.Tensor | None = field(default=None, repr=False)
     base: "View | None" = field(default=None, repr=False)
-    normals: torch.Tensor | None = field(default=None, repr=False)
 
     @property
     def origin(self) -> "View":
@@ -145,15 +139,12 @@ class ResidualProblem(NamedTuple):
             valid reference depth).
         points_ref: ``(1, 3, H, W)`` the reference's points at ``x + F_t(x)``, normalised by
             ``depth.max_depth_mm`` (eq. 2's ``pi_3D(D_{t-1}, x + F_t(x))``).
-        surface: the reference's surface for the point-to-plane residual (``weights.residuals:
-            2d3dplane``), else None.
     """
 
     target: torch.Tensor
     valid: torch.Tensor
     valid3: torch.Tensor
     points_ref: torch.Tensor
-    surface: Surface | None = None
 
 
 @dataclass
@@ -219,8 +210,6 @@ class StereoOdometry:
         self.temporal_flow, self.stereo_flow = make_flow_estimators(config.correspondence, device)
         self.lr_check_flow = make_lr_check_flow(config.correspondence, self.stereo_flow, camera.width)
         self.networks: TrackingNetworks | None = None
-        # the point-to-plane residual's weight per pixel with depth (0: not in the objective)
-        self.plane_weight = PLANE_WEIGHT if config.weights.residuals == "2d3dplane" else 0.0
         wcfg, dcfg = config.weights, config.depth
         if wcfg.mode == "learned":
             self.networks = networks.to(self.device) if networks is not None else load_tracking_networks(
@@ -232,9 +221,6 @@ class StereoOdometry:
         # a real frame's image with its masked pixels inpainted, for flows against a model view's
         # colour (the frame is flowed against the model in its tracking and refinement passes)
         self._flow_inputs: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-        # a reference's normals fitted to its depth, once per view (it may be the reference of
-        # several tracks: a keyframe, the cross-check's last frame, a recovery's candidates)
-        self._fitted_normals: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
     # ---------------------------------------------------------------- views
     def _flow(self, estimator, a_img: torch.Tensor, a_gray: np.ndarray, b_img: torch.Tensor, b_gray: np.ndarray,
@@ -299,8 +285,7 @@ class StereoOdometry:
                     masked=masked if masked is not None and masked.any() else None)
 
     def view_from_render(self, color: torch.Tensor | None, depth: torch.Tensor, valid: torch.Tensor,
-                         background: View | None = None, background_matchable: bool = True,
-                         normals: torch.Tensor | None = None) -> View:
+                         background: View | None = None, background_matchable: bool = True) -> View:
         """A reference view from a rendered model view.
 
         Args:
@@ -316,7 +301,6 @@ class StereoOdometry:
             background_matchable: False when the background sits at another pose than the
                 render (the current frame filling a render at its own estimated pose): the
                 filled pixels are then not :attr:`View.matchable`.
-            normals: ``(3, H, W)`` the render's unit normals in the camera frame, or None.
         """
         dcfg = self.config.depth
         depth = depth[None, None].to(self.device).float()
@@ -336,8 +320,7 @@ class StereoOdometry:
                     parallax=parallax_from_depth(depth, self.camera.depth_from_disparity_scale()),
                     matchable=None if background is None or background_matchable else covered,
                     from_model=True, rendered=color is not None,
-                    image_of=background if color is None else None,
-                    normals=None if normals is None else normals[None].to(self.device).float() * valid)
+                    image_of=background if color is None else None)
 
     # ---------------------------------------------------------------- tracking
     def track(self, cur: View, ref: View, init: np.ndarray | None = None,
@@ -444,22 +427,8 @@ class StereoOdometry:
         if ref.matchable is not None:
             valid &= sample_valid_by_flow(ref.matchable, flow, grid)
         valid3 = valid & sample_valid_by_flow(ref.valid, flow, grid)
-        ref_points = backproject(ref.depth / dmax, self.K)
-        points_ref = sample_by_flow(ref_points, flow, grid=grid)
-        surface = self.reference_surface(ref, ref_points) if self.plane_weight > 0 else None
-        return ResidualProblem(target, valid, valid3, points_ref, surface)
-
-    def reference_surface(self, ref: View, ref_points: torch.Tensor) -> Surface:
-        """The reference's surface for the point-to-plane residual: its points ``(1, 3, H, W)``
-        (normalised) and normals (a model view's own, else fitted to its depth)."""
-        normals = ref.normals
-        if normals is None:
-            if ref not in self._fitted_normals:
-                self._fitted_normals[ref] = surface_normals(ref.depth, ref.valid, self.K)[0]
-            normals = self._fitted_normals[ref]
-        H, W = ref_points.shape[-2:]
-        return Surface(points=ref_points.flatten(2), normals=normals.flatten(2), height=H, width=W,
-                       max_gap=MAX_GAP_MM / self.config.depth.max_depth_mm)
+        points_ref = sample_by_flow(backproject(ref.depth / dmax, self.K), flow, grid=grid)
+        return ResidualProblem(target, valid, valid3, points_ref)
 
     def weight_maps(self, cur: View, ref: View, corr: Correspondences,
                     problem: ResidualProblem) -> tuple[torch.Tensor, torch.Tensor]:
@@ -497,12 +466,9 @@ class StereoOdometry:
         dmax = self.config.depth.max_depth_mm
         points_cur = backproject(cur.depth / dmax, self.K)
         s2, s3 = PoseProblem.scales(*problem.target.shape[-2:])
-        wp = None
-        if problem.surface is not None:
-            wp = self.plane_weight * cur.valid.flatten(1).to(w2d.dtype)
         prob = PoseProblem(points_cur=points_cur.flatten(2), target_px=problem.target.flatten(2),
                            points_ref=problem.points_ref.flatten(2), w2d=w2d.flatten(1), w3d=w3d.flatten(1),
-                           K=self.K[None], s2=s2, s3=s3, wp=wp, surface=problem.surface)
+                           K=self.K[None], s2=s2, s3=s3)
         prob, n_valid = prob.compact(scfg.max_pixels)
         if n_valid < scfg.min_valid_pixels:
             return None, n_valid, None

@@ -1,6 +1,6 @@
 """Weighted se(3) pose optimisation (paper eq. 4).
 
-``solve_pose`` minimises ``f(T) = sum w2 |e2|^2 + w3 |e3|^2 (+ wp |ep|^2)`` over the relative pose. The default is
+``solve_pose`` minimises ``f(T) = sum w2 |e2|^2 + w3 |e3|^2`` over the relative pose. The default is
 Levenberg-Marquardt on the analytic Jacobians (``vo.residuals.jacobians``) with left updates
 ``T <- exp(d) T``; ``lbfgs`` follows the paper
 (quasi-Newton on the tangent vector with autograd gradients). Normal equations are accumulated and
@@ -14,7 +14,7 @@ import torch
 
 from vo.config import SolverConfig
 from vo.lie import se3_exp, se3_exp_fast, se3_log, skew
-from vo.residuals import PoseProblem, objective, objective_se3, plane_jacobian, plane_residuals, residuals
+from vo.residuals import PoseProblem, objective, objective_se3, residuals
 
 
 @dataclass(frozen=True)
@@ -118,21 +118,7 @@ def normal_equations(T: torch.Tensor, prob: PoseProblem) -> tuple[torch.Tensor, 
     H3[:, 3:, :3] = Sk
     H3[:, 3:, 3:] = torch.diagonal(swYY, dim1=1, dim2=2).sum(-1)[:, None, None] * eye - swYY
     g3 = torch.cat([(e3d * w3d[:, None]).sum(2), (torch.cross(Yd, e3d, dim=1) * w3d[:, None]).sum(2)], 1)
-    H, g, cost = H + s3 * s3 * H3, g + s3 * g3, cost.double()
-    if prob.has_surface:
-        Hp, gp, cp = plane_normal_equations(Y, prob)
-        H, g, cost = H + Hp, g + gp, cost + cp
-    return H, g, cost
-
-
-def plane_normal_equations(Y: torch.Tensor, prob: PoseProblem) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The point-to-plane term's share of the Gauss-Newton system at the moved points ``Y``
-    ``(B, 3, N)`` (association re-done here): ``H`` ``(B, 6, 6)``, ``g`` ``(B, 6)``, cost ``(B,)``,
-    float64."""
-    ep, wp, n = plane_residuals(Y, prob)
-    J = plane_jacobian(Y.double(), n.double(), prob.s3)              # (B, N, 6)
-    wJ = J * wp.double()[..., None]
-    return wJ.transpose(1, 2) @ J, (wJ * ep.double()[..., None]).sum(1), (wp * ep.pow(2)).sum(1).double()
+    return H + s3 * s3 * H3, g + s3 * g3, cost.double()
 
 
 def _solve_damped(H: torch.Tensor, g: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
@@ -154,8 +140,6 @@ def kernels_for(prob: PoseProblem, kernel: str):
     from vo import solver_kernels
 
     tensors = (prob.points_cur, prob.target_px, prob.points_ref, prob.w2d, prob.w3d)
-    if prob.has_surface:
-        tensors += (prob.wp, prob.surface.points, prob.surface.normals)
     usable = (solver_kernels.AVAILABLE and prob.points_cur.device.type == "cpu"
               and not any(t.requires_grad for t in tensors))
     if kernel == "compiled" and not usable:

@@ -1,5 +1,4 @@
-"""The LM solver's normal equations as one compiled loop over the pixels (numba, CPU), the
-point-to-plane term's projective association included.
+"""The LM solver's normal equations as one compiled loop over the pixels (numba, CPU).
 
 ``vo.solver.normal_equations`` builds the Gauss-Newton system with ~100 vectorised torch ops per
 evaluation; on a CPU with 16k pixels their cost is the traffic of the intermediates, not the
@@ -19,7 +18,7 @@ import torch
 AVAILABLE = importlib.util.find_spec("numba") is not None
 
 
-def _normal_equations_loop(T, pc, tgt, pr, w2, w3, K, s2, s3, H, g, cost, surface, wp, sp, sn, Hs, Ws, max_gap):
+def _normal_equations_loop(T, pc, tgt, pr, w2, w3, K, s2, s3, H, g, cost):
     B, N = w2.shape
     for b in range(B):
         R00, R01, R02, t0 = T[b, 0, 0], T[b, 0, 1], T[b, 0, 2], T[b, 0, 3]
@@ -79,28 +78,6 @@ def _normal_equations_loop(T, pc, tgt, pr, w2, w3, K, s2, s3, H, g, cost, surfac
                 gg[3] += s3 * wb * (Y1 * e2 - Y2 * e1)
                 gg[4] += s3 * wb * (Y2 * e0 - Y0 * e2)
                 gg[5] += s3 * wb * (Y0 * e1 - Y1 * e0)
-            if surface:
-                wc = float(wp[b, n])
-                if wc != 0.0 and Y2 > 0.0:
-                    # projective association: the reference's point and normal at the nearest pixel
-                    iz = 1.0 / (Y2 if Y2 > 1e-6 else 1e-6)
-                    u = np.floor(fx * Y0 * iz + cx + 0.5)
-                    v = np.floor(fy * Y1 * iz + cy + 0.5)
-                    if u >= 0.0 and u <= Ws - 1 and v >= 0.0 and v <= Hs - 1:
-                        at = int(v) * Ws + int(u)
-                        n0, n1, n2 = float(sn[b, 0, at]), float(sn[b, 1, at]), float(sn[b, 2, at])
-                        q0, q1, q2 = float(sp[b, 0, at]), float(sp[b, 1, at]), float(sp[b, 2, at])
-                        if (n0 != 0.0 or n1 != 0.0 or n2 != 0.0) and abs(Y2 - q2) < max_gap:
-                            ep = s3 * (n0 * (Y0 - q0) + n1 * (Y1 - q1) + n2 * (Y2 - q2))
-                            ju[0], ju[1], ju[2] = s3 * n0, s3 * n1, s3 * n2
-                            ju[3] = s3 * (Y1 * n2 - Y2 * n1)
-                            ju[4] = s3 * (Y2 * n0 - Y0 * n2)
-                            ju[5] = s3 * (Y0 * n1 - Y1 * n0)
-                            for i in range(6):
-                                gg[i] += wc * ju[i] * ep
-                                for j in range(i, 6):
-                                    h[i, j] += wc * ju[i] * ju[j]
-                            c += wc * ep * ep
         sYY[1, 0], sYY[2, 0], sYY[2, 1] = sYY[0, 1], sYY[0, 2], sYY[1, 2]
         for i in range(6):
             for j in range(i):
@@ -139,13 +116,7 @@ def normal_equations_compiled(T: torch.Tensor, prob) -> tuple[torch.Tensor, torc
     g = np.empty((B, 6))
     cost = np.empty(B)
     arr = lambda t: np.ascontiguousarray(t.detach().numpy())  # noqa: E731
-    if prob.has_surface:
-        surf = prob.surface
-        plane = (True, arr(prob.wp), arr(surf.points), arr(surf.normals), surf.height, surf.width, float(surf.max_gap))
-    else:
-        empty = np.zeros((B, 3, 1), dtype=prob.w2d.detach().numpy().dtype)
-        plane = (False, empty[:, 0], empty, empty, 1, 1, 0.0)
     _kernel()(T.detach().double().numpy(), arr(prob.points_cur), arr(prob.target_px), arr(prob.points_ref),
               arr(prob.w2d), arr(prob.w3d), np.ascontiguousarray(prob.K.detach().double().expand(B, 3, 3).numpy()),
-              float(prob.s2), float(prob.s3), H, g, cost, *plane)
+              float(prob.s2), float(prob.s3), H, g, cost)
     return torch.from_numpy(H), torch.from_numpy(g), torch.from_numpy(cost)

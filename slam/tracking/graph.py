@@ -194,8 +194,7 @@ class LoopClosureGraph(NoGraph):
         tracker and verify it as a loop: the registration, its calibrated covariance (None where
         it failed) and why it is not a loop ('' where it is one, :meth:`LoopClosure.verify`)."""
         odometry = tracker.odometry
-        ref = odometry.view_from_render(mv.color, mv.depth, mv.valid, background=view, background_matchable=False,
-                                       normals=mv.normals)
+        ref = odometry.view_from_render(mv.color, mv.depth, mv.valid, background=view, background_matchable=False)
         reg = odometry.track(view, ref)
         covariance = None
         if not reg.failed and reg.fit is not None:

@@ -123,7 +123,7 @@ class ModelReference:
             # the current frame fills the few uncovered pixels (no residual there: it sits at the
             # true pose, the render at the estimate) and gives the render its shading
             ref = policy.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=view,
-                                                   background_matchable=False, normals=mv.normals)
+                                                   background_matchable=False)
             refined = policy.odometry.track(view, ref)
             result.timings += list(refined.timings_ms.items())
             if refined.failed:
@@ -246,6 +246,5 @@ class ModelViewReference(PreviousFrame):
             return super().choose(state, result)
         mv.with_colour()
         result.time("render", t0)
-        ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=state.last_view,
-                                             normals=mv.normals)
+        ref = self.odometry.view_from_render(mv.color, mv.depth, mv.valid, background=state.last_view)
         return ModelReference(ref, state.pose, state.position, self, seen_from)
