@@ -4,8 +4,10 @@ and macro averages, for constant and learned weights (ablation).
     .venv/bin/python tools/benchmark_scenarios.py [--scenarios breathing scanning deforming]
         [--seeds 9001 9002 9003 9101 ... 9107] [--frames 150] [--size 320x256] [--workers 2]
         [--out runs/scenarios] [--methods ...] [--checkpoints DIR] [--reuse EARLIER_OUT]
-        [--appearance random | texture=0.1,highlights=1,...]
+        [--appearance random | texture=0.1,highlights=1,... [SPEC ...]]
     .venv/bin/python tools/benchmark_scenarios.py --report runs/scenarios   # the tables of a finished run
+    .venv/bin/python tools/benchmark_scenarios.py --appearance default texture=0.5,highlights=1 \
+        texture=0,highlights=1                   # Table 1 per texture level, one table per look
 
 Evaluation seeds are disjoint from the training seeds (configs/train.yaml, 1000+): 9001-9003 were
 fixed before any tuning (and later decisions were read off them), 9101-9107 were added unseen
@@ -24,6 +26,8 @@ on the other pixels (the generator's ground truth, `nonrigid/`), and the same ra
 It also compares learned 2D&3D with the best constant per scenario: the ratio of their mean ATEs
 with a 95 % bootstrap interval over the sequences (resampled in pairs: the same seeds for both),
 so a gap the table shows can be told from the spread between sequences.
+With several looks (``--appearance`` SPEC ...) every scenario and seed is rendered in each look and
+the tables come once per look, under a heading that names it (``default`` is the generator's own).
 """
 from __future__ import annotations
 
@@ -127,7 +131,7 @@ def run_one(job: dict) -> dict:
     pair = PAIR_MOTION_MM if cfg.tracking.mode == "frame2frame" and cfg.tracking.keyframe_gap == 1 else None
     stats = WeightStats(pair_threshold_mm=pair) if job["method"].startswith("learned") else None
     result = pipeline(cfg, data, job["out"], logger=stats).run(progress=False)
-    return {**{k: job[k] for k in ("scenario", "seed", "method")}, "ate_rmse_mm": result.metrics["ate_rmse_mm"],
+    return {**{k: job[k] for k in ("scenario", "seed", "method", "look")}, "ate_rmse_mm": result.metrics["ate_rmse_mm"],
             "rpe_trans_mm": result.metrics["rpe_trans_mm"], "failed": len(result.metrics["failed_frames"]),
             "w3d": stats.means() if stats else None}
 
@@ -148,9 +152,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--camera-speed", type=float, default=1.0, metavar="S",
                     help="generate the sequences with the moving cameras' motion per frame scaled by S "
                          "(slam synth --camera-speed; 0.1: creeping below tracking's still threshold)")
-    ap.add_argument("--appearance", default=None, metavar="SPEC",
-                    help="generate the sequences with this look (slam synth --appearance: 'random' draws one per "
-                         "seed, or KEY=VALUE,... such as texture=0.1,highlights=1)")
+    ap.add_argument("--appearance", nargs="+", default=["default"], metavar="SPEC",
+                    help="generate the sequences with this look (slam synth --appearance: 'default', 'random' draws "
+                         "one per seed, or KEY=VALUE,... such as texture=0.1,highlights=1); several looks: "
+                         "every sequence in each, one table per look")
     ap.add_argument("--checkpoints", default=None,
                     help="folder with weights_{2d3d,2d,3d}.pt to use instead of the packaged checkpoints")
     ap.add_argument("--report", default=None, metavar="DIR",
@@ -160,7 +165,8 @@ def main(argv: list[str] | None = None) -> None:
                          "(same sequences and settings assumed, e.g. the constant-weight rows)")
     args = ap.parse_args(argv)
     # repeated names would run (and report) the same sequence twice
-    args.scenarios, args.seeds, args.methods = (list(dict.fromkeys(v)) for v in (args.scenarios, args.seeds, args.methods))
+    args.scenarios, args.seeds, args.methods, args.appearance = (
+        list(dict.fromkeys(v)) for v in (args.scenarios, args.seeds, args.methods, args.appearance))
     if args.report:
         results = json.loads((Path(args.report) / "scenarios.json").read_text())
         scenarios = [s for s in args.scenarios if any(r["scenario"] == s for r in results)]
@@ -170,29 +176,30 @@ def main(argv: list[str] | None = None) -> None:
     w, h = (int(v) for v in args.size.split("x"))
     out = Path(args.out)
     jobs = []
-    for scenario in args.scenarios:
-        for seed in args.seeds:
-            tag = f"_ft{args.breathing_follows_tissue:g}" if args.breathing_follows_tissue else ""
-            tag += f"_v{args.camera_speed:g}" if args.camera_speed != 1.0 else ""
-            tag += appearance_tag(args.appearance)
-            data = out / "data" / f"{scenario}_s{seed}_{args.size}_{args.frames}{tag}"
-            for method in args.methods:
-                jobs.append({"scenario": scenario, "seed": seed, "method": method, "data": str(data),
-                             "frames": args.frames, "size": [w, h], "extra": args.set,
-                             "follows": args.breathing_follows_tissue, "camera_speed": args.camera_speed,
-                             "appearance": args.appearance,
-                             "checkpoints": args.checkpoints,
-                             "out": str(out / "runs" / f"{scenario}_s{seed}_{method.replace(' ', '_').replace('&', 'and')}")})
+    for look in args.appearance:
+        for scenario in args.scenarios:
+            for seed in args.seeds:
+                tag = f"_ft{args.breathing_follows_tissue:g}" if args.breathing_follows_tissue else ""
+                tag += f"_v{args.camera_speed:g}" if args.camera_speed != 1.0 else ""
+                tag += appearance_tag(look)
+                data = out / "data" / f"{scenario}_s{seed}_{args.size}_{args.frames}{tag}"
+                for method in args.methods:
+                    name = f"{scenario}_s{seed}{appearance_tag(look)}_{method.replace(' ', '_').replace('&', 'and')}"
+                    jobs.append({"scenario": scenario, "seed": seed, "method": method, "look": look, "data": str(data),
+                                 "frames": args.frames, "size": [w, h], "extra": args.set,
+                                 "follows": args.breathing_follows_tissue, "camera_speed": args.camera_speed,
+                                 "appearance": look, "checkpoints": args.checkpoints,
+                                 "out": str(out / "runs" / name)})
     # generate each sequence once before the workers share it
     for job in {j["data"]: j for j in jobs}.values():
         sequence(job)
     results = run_in_workers(run_one, jobs, args.workers)
     methods = args.methods
     if args.reuse:
-        done = {(r["scenario"], r["seed"], r["method"]) for r in results}
+        done = {(look_of(r), r["scenario"], r["seed"], r["method"]) for r in results}
         old = json.loads((Path(args.reuse) / "scenarios.json").read_text())
         old = [r for r in old if r["scenario"] in args.scenarios and r["seed"] in args.seeds
-               and (r["scenario"], r["seed"], r["method"]) not in done]
+               and look_of(r) in args.appearance and (look_of(r), r["scenario"], r["seed"], r["method"]) not in done]
         results += old
         methods = [m for m in METHODS if m in {r["method"] for r in results}]
     out.mkdir(parents=True, exist_ok=True)
@@ -200,22 +207,37 @@ def main(argv: list[str] | None = None) -> None:
     write_report(results, args.scenarios, methods, out)
 
 
+def look_of(result: dict) -> str:
+    """The look a result was rendered in (``default`` for runs that did not record one)."""
+    return result.get("look") or "default"
+
+
 def write_report(results: list[dict], scenarios: list[str], methods: list[str], out: Path) -> None:
-    """Print the tables and write them to ``out/scenarios.md``."""
+    """Print the tables and write them to ``out/scenarios.md``: once, or once per look under a
+    heading naming it when the results hold several."""
+    looks = list(dict.fromkeys(look_of(r) for r in results))
+    if len(looks) == 1:
+        text = look_report(results, scenarios, methods)
+    else:
+        text = "\n\n".join(f"### Look: {look}\n\n" + look_report([r for r in results if look_of(r) == look], scenarios,
+                                                                  methods) for look in looks)
+    print(text)
+    (out / "scenarios.md").write_text(text + "\n")
+
+
+def look_report(results: list[dict], scenarios: list[str], methods: list[str]) -> str:
+    """The tables of one look's results: ATE, RPE, learned against best constant, the weights."""
     table = format_table(results, scenarios, methods)
     table += "\n\nRelative pose error, translation (mm per frame):\n\n"
     table += format_table(results, scenarios, methods, metric="rpe_trans_mm", digits=3)
     gap = paired_ratio_table(results, scenarios, "learned 2D&3D", "best constant")
     if gap:
         table += "\n\n" + gap
-    print(table)
     weights = weight_check(results)
     summary = weight_ratio_summary(results, scenarios)
     if summary:
         weights = (weights + "\n\n" + summary) if weights else summary
-    if weights:
-        print(weights)
-    (out / "scenarios.md").write_text(table + "\n\n" + weights + "\n")
+    return table + ("\n\n" + weights if weights else "")
 
 
 def paired_ratio(a: np.ndarray, b: np.ndarray, n_boot: int = 10000, seed: int = 0) -> tuple[float, float, float]:

@@ -195,3 +195,31 @@ def test_weight_stats_split_by_rest_shape_and_by_motion_between_frames():
     st.log_frame(2, frame(displaced), None, track(), None, None, None, None)
     assert st.sums["pair_moving"][1] == st.sums["pair_still"][1] == 0 and st.sums["moving"][1] == 12
     assert "pair_moving" not in B.WeightStats().means()                         # frame2model: no such split
+
+
+def test_several_looks_give_one_table_each(tmp_path, monkeypatch, capsys):
+    """``--appearance default texture=0,highlights=1``: every sequence rendered in both looks (the
+    weak one from the same seed, its own folder), each run recorded with its look, and the tables
+    once per look under a heading; ``--report`` rebuilds the same."""
+    out = tmp_path / "bench"
+    monkeypatch.setattr(sys, "argv", ["benchmark_scenarios.py", "--scenarios", "scanning", "--seeds", "5",
+                                      "--frames", "8", "--size", "160x128", "--workers", "1", "--methods",
+                                      "best constant", "--appearance", "default", "texture=0,highlights=1",
+                                      "--out", str(out)])
+    B.main()
+    results = json.loads((out / "scenarios.json").read_text())
+    assert sorted(r["look"] for r in results) == ["default", "texture=0,highlights=1"]
+    assert sorted(p.name for p in (out / "data").iterdir()) == [
+        "scanning_s5_160x128_8", "scanning_s5_160x128_8_texture0_highlights1"]
+    assert sorted(p.name for p in (out / "runs").iterdir()) == [
+        "scanning_s5_best_constant", "scanning_s5_texture0_highlights1_best_constant"]
+    md = (out / "scenarios.md").read_text()
+    assert md.startswith("### Look: default\n") and "\n### Look: texture=0,highlights=1\n" in md
+    for look, section in zip(("default", "texture=0,highlights=1"), md.split("### Look: ")[1:]):
+        ate = next(r["ate_rmse_mm"] for r in results if r["look"] == look)
+        row = next(line for line in section.splitlines() if line.startswith("| best constant |"))
+        assert row.split("|")[2].strip() == f"{ate:.2f} ± 0.00", (look, row)
+    assert "### Look: texture=0,highlights=1" in capsys.readouterr().out
+    monkeypatch.setattr(sys, "argv", ["benchmark_scenarios.py", "--report", str(out)])
+    B.main()
+    assert (out / "scenarios.md").read_text() == md
