@@ -200,10 +200,7 @@ class WeightsConfig:
 
     Attributes:
         mode: ``learned`` (weight networks from ``checkpoint``) or ``constant`` (``w2d``, ``w3d``).
-        residuals: the terms of the objective: ``2d3dphoto`` (the paper's 2D and 3D residuals and
-            a photometric residual with an affine brightness change per frame pair, weighed by
-            ``vo.residuals.PHOTO_WEIGHT``; its 2D and 3D weights are the ``2d3d`` networks'),
-            ``2d3d`` (the paper's), ``2d`` | ``3d`` (ablation: the other weight is zero).
+        residuals: ``2d3d`` | ``2d`` | ``3d`` (ablation: the other weight is zero).
         w2d, w3d: the constant weights; their defaults come from the sweep of the 2D/3D balance on
             the 1200 training pairs in ``tools/sweep_constant_weights.py`` (docs/experiments.md): w3d/w2d = 0.01 gave the lowest pose error (w = 1 for both: 3.9x higher).
         checkpoint: weight-network checkpoint; empty = the packaged one for ``residuals``
@@ -216,7 +213,7 @@ class WeightsConfig:
     """
 
     mode: Literal["learned", "constant"] = "learned"
-    residuals: Literal["2d3d", "2d", "3d", "2d3dphoto"] = "2d3d"
+    residuals: Literal["2d3d", "2d", "3d"] = "2d3d"
     w2d: float = 1.0
     w3d: float = 0.01
     checkpoint: str = ""

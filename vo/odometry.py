@@ -39,7 +39,7 @@ from vo.geometry import (backproject, flow_grid, lands_inside, motion_field, pix
                          sample_valid_by_flow)
 from vo.health import PoseFit, pose_fit, weighted_median
 from vo.lie import rotation_angle_deg
-from vo.residuals import PHOTO_WEIGHT, PoseProblem, Shading, residuals
+from vo.residuals import PoseProblem, residuals
 from vo.solver import TRACKING, SolverResult, solve_pose
 from vo.weights import TrackingNetworks, WeightInputs, constant_weights, load_tracking_networks
 
@@ -139,17 +139,12 @@ class ResidualProblem(NamedTuple):
             valid reference depth).
         points_ref: ``(1, 3, H, W)`` the reference's points at ``x + F_t(x)``, normalised by
             ``depth.max_depth_mm`` (eq. 2's ``pi_3D(D_{t-1}, x + F_t(x))``).
-        shading: the photometric term's images (``weights.residuals: 2d3dphoto``; its
-            ``cur`` ``(1, H * W)``), else None.
-        photo_valid: ``(1, 1, H, W)`` bool current pixels with a photometric residual, else None.
     """
 
     target: torch.Tensor
     valid: torch.Tensor
     valid3: torch.Tensor
     points_ref: torch.Tensor
-    shading: Shading | None = None
-    photo_valid: torch.Tensor | None = None
 
 
 @dataclass
@@ -215,8 +210,6 @@ class StereoOdometry:
         self.temporal_flow, self.stereo_flow = make_flow_estimators(config.correspondence, device)
         self.lr_check_flow = make_lr_check_flow(config.correspondence, self.stereo_flow, camera.width)
         self.networks: TrackingNetworks | None = None
-        # the photometric residual's weight per current pixel with depth (0: not in the objective)
-        self.photo_weight = PHOTO_WEIGHT if config.weights.residuals == "2d3dphoto" else 0.0
         wcfg, dcfg = config.weights, config.depth
         if wcfg.mode == "learned":
             self.networks = networks.to(self.device) if networks is not None else load_tracking_networks(
@@ -435,46 +428,7 @@ class StereoOdometry:
             valid &= sample_valid_by_flow(ref.matchable, flow, grid)
         valid3 = valid & sample_valid_by_flow(ref.valid, flow, grid)
         points_ref = sample_by_flow(backproject(ref.depth / dmax, self.K), flow, grid=grid)
-        if self.photo_weight <= 0:
-            return ResidualProblem(target, valid, valid3, points_ref)
-        shading, photo_valid = self.shading(cur, ref, valid, grid)
-        return ResidualProblem(target, valid, valid3, points_ref, shading, photo_valid)
-
-    def shading(self, cur: View, ref: View, valid: torch.Tensor, grid: torch.Tensor) -> tuple[Shading, torch.Tensor]:
-        """The photometric term's images: the reference's blurred grey levels, their Sobel
-        gradient and where they may be compared (not masked, inside the render of a model view,
-        two pixels from the border), and the current pixels' grey levels matched to the
-        reference's by ``a I + b`` fitted by least squares on the flow's correspondences
-        ``valid`` (``grid``: their sampling grid); with the current pixels that take part."""
-        import kornia
-
-        def grey(view: View) -> torch.Tensor:
-            g = view.image.mean(1, keepdim=True) * 255.0
-            return kornia.filters.gaussian_blur2d(g, (5, 5), (1.0, 1.0), border_type="replicate")
-
-        g_ref, g_cur = grey(ref), grey(cur)
-        grad = kornia.filters.spatial_gradient(g_ref, mode="sobel", normalized=True)[:, 0]    # (1, 2, H, W)
-        usable = torch.ones_like(g_ref, dtype=torch.bool)
-        if ref.masked is not None:
-            usable &= torch.from_numpy(~ref.masked).to(usable.device)[None, None]
-        if ref.matchable is not None:
-            usable &= ref.matchable
-        if ref.from_model:
-            usable &= ref.valid
-        usable[..., :2, :] = usable[..., -2:, :] = False
-        usable[..., :, :2] = usable[..., :, -2:] = False
-        maps = torch.cat([g_ref, grad, usable.to(g_ref.dtype)], 1)
-        # the brightness change between the frames: a I_cur + b = I_ref along the flow
-        along = sample_by_flow(g_ref, None, grid=grid)[valid]
-        seen = g_cur[valid]
-        a, b = 1.0, 0.0
-        if seen.numel() >= 100 and float(seen.var()) > 1e-6:
-            a = float(((seen - seen.mean()) * (along - along.mean())).mean() / seen.var(unbiased=False))
-            b = float(along.mean() - a * seen.mean())
-        photo_valid = cur.valid.clone()
-        if cur.masked is not None:
-            photo_valid &= torch.from_numpy(~cur.masked).to(photo_valid.device)[None, None]
-        return Shading(maps=maps, cur=(a * g_cur + b).flatten(1)), photo_valid
+        return ResidualProblem(target, valid, valid3, points_ref)
 
     def weight_maps(self, cur: View, ref: View, corr: Correspondences,
                     problem: ResidualProblem) -> tuple[torch.Tensor, torch.Tensor]:
@@ -512,10 +466,9 @@ class StereoOdometry:
         dmax = self.config.depth.max_depth_mm
         points_cur = backproject(cur.depth / dmax, self.K)
         s2, s3 = PoseProblem.scales(*problem.target.shape[-2:])
-        wph = None if problem.shading is None else self.photo_weight * problem.photo_valid.flatten(1).to(w2d.dtype)
         prob = PoseProblem(points_cur=points_cur.flatten(2), target_px=problem.target.flatten(2),
                            points_ref=problem.points_ref.flatten(2), w2d=w2d.flatten(1), w3d=w3d.flatten(1),
-                           K=self.K[None], s2=s2, s3=s3, wph=wph, shading=problem.shading)
+                           K=self.K[None], s2=s2, s3=s3)
         prob, n_valid = prob.compact(scfg.max_pixels)
         if n_valid < scfg.min_valid_pixels:
             return None, n_valid, None

@@ -10,13 +10,6 @@ The objective is ``f(T) = sum_x w2D(x) |e2D(x)|^2 + w3D(x) |e3D(x)|^2`` with
 paper states it at the paper's 640x512 and keeps the 2D/3D balance independent of the pixel count
 at other sizes. Squaring eq. 3 literally adds a cross term that is not differentiable at zero
 residual, so the two squared terms are summed, as in the authors' implementation.
-
-The photometric term (optional, ``PoseProblem.shading``) needs no flow either: each current point,
-moved by ``T``, is projected into the reference image and its grey level compared with the
-current pixel's, matched to the reference's brightness by an affine model fitted per frame
-pair, ``eph = s2 * (I_ref(pi(T P_t(x))) - (a I_t(x) + b))`` (grey levels), weighed by ``wph(x)``.
-The reference image is sampled bilinearly at every evaluation; its gradient (Sobel of the
-blurred image) makes the Jacobian.
 """
 from __future__ import annotations
 
@@ -24,31 +17,11 @@ import math
 from dataclasses import dataclass, replace
 
 import torch
-import torch.nn.functional as F
 
 from vo.geometry import project
 from vo.lie import se3_exp, skew
 
 REFERENCE_PIXELS = 640 * 512
-# the photometric residual's weight on every current pixel with depth (``weights.residuals: 2d3dphoto``)
-PHOTO_WEIGHT = 0.003
-
-
-@dataclass
-class Shading:
-    """The images of the photometric residual.
-
-    Attributes:
-        maps: ``(B, 4, H, W)`` the reference's grey levels, their derivatives along u and v
-            (grey levels per pixel) and where the reference may be compared (1, else 0).
-        cur: ``(B, N)`` the current pixels' grey levels, matched to the reference's brightness.
-    """
-
-    maps: torch.Tensor
-    cur: torch.Tensor
-
-    def to(self, dtype: torch.dtype) -> "Shading":
-        return replace(self, maps=self.maps.to(dtype), cur=self.cur.to(dtype))
 
 
 @dataclass
@@ -62,9 +35,7 @@ class PoseProblem:
         w2d: ``(B, N)`` 2D weights, zero on invalid pixels.
         w3d: ``(B, N)`` 3D weights, zero on invalid pixels.
         K: ``(B, 3, 3)`` intrinsics (pixels).
-        s2, s3: residual scales (see module docstring); the photometric residual takes ``s2``.
-        wph: ``(B, N)`` photometric weights, or None (no such term).
-        shading: the images the photometric term compares, or None.
+        s2, s3: residual scales (see module docstring).
     """
 
     points_cur: torch.Tensor
@@ -75,13 +46,6 @@ class PoseProblem:
     K: torch.Tensor
     s2: float
     s3: float
-    wph: torch.Tensor | None = None
-    shading: Shading | None = None
-
-    @property
-    def has_shading(self) -> bool:
-        """Whether the photometric term is in the objective."""
-        return self.shading is not None and self.wph is not None
 
     @staticmethod
     def scales(height: int, width: int) -> tuple[float, float]:
@@ -97,21 +61,17 @@ class PoseProblem:
         inference) and, with ``max_pixels`` > 0, keep at most that many of the rest, evenly
         spaced (deterministic), with the weights rescaled by ``N / kept`` so that the objective
         keeps its magnitude. One gather; returns the problem and ``N``, the weighted columns."""
-        weighted = (self.w2d > 0) | (self.w3d > 0)
-        if self.has_shading:
-            weighted |= self.wph > 0
-        idx = weighted.any(0).nonzero().squeeze(1)
+        idx = ((self.w2d > 0) | (self.w3d > 0)).any(0).nonzero().squeeze(1)
         n = int(idx.numel())
         scale = 1.0
         if 0 < max_pixels < n:
             idx = idx[torch.linspace(0, n - 1, max_pixels, device=idx.device).round().long()]
             scale = n / float(max_pixels)
-        w2d, w3d = self.w2d[:, idx] * scale, self.w3d[:, idx] * scale
-        wph, shading = None, None
-        if self.has_shading:
-            wph, shading = self.wph[:, idx] * scale, replace(self.shading, cur=self.shading.cur[:, idx])
+        w2d, w3d = self.w2d[:, idx], self.w3d[:, idx]
+        if scale != 1.0:
+            w2d, w3d = w2d * scale, w3d * scale
         return replace(self, points_cur=self.points_cur[:, :, idx], target_px=self.target_px[:, :, idx],
-                       points_ref=self.points_ref[:, :, idx], w2d=w2d, w3d=w3d, wph=wph, shading=shading), n
+                       points_ref=self.points_ref[:, :, idx], w2d=w2d, w3d=w3d), n
 
     def to(self, dtype: torch.dtype) -> "PoseProblem":
         return replace(
@@ -122,8 +82,6 @@ class PoseProblem:
             w2d=self.w2d.to(dtype),
             w3d=self.w3d.to(dtype),
             K=self.K.to(dtype),
-            wph=None if self.wph is None else self.wph.to(dtype),
-            shading=None if self.shading is None else self.shading.to(dtype),
         )
 
 
@@ -143,28 +101,10 @@ def residuals(T: torch.Tensor, prob: PoseProblem) -> tuple[torch.Tensor, torch.T
     return e2, e3, Y
 
 
-def photometric_residuals(Y: torch.Tensor, prob: PoseProblem) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The photometric residual of the moved points ``Y`` ``(B, 3, N)``: ``eph`` ``(B, N)`` (zero
-    where the projection falls off the comparable reference), the weights there ``(B, N)`` and
-    the reference's gradient at the projections ``(B, 2, N)`` (grey levels per pixel)."""
-    maps = prob.shading.maps
-    H, W = maps.shape[-2:]
-    uv = project(Y, prob.K)
-    grid = torch.stack([uv[:, 0] * (2.0 / (W - 1)) - 1.0, uv[:, 1] * (2.0 / (H - 1)) - 1.0], -1)[:, None]
-    s = F.grid_sample(maps, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[:, :, 0]
-    ok = (s[:, 3] > 0.999) & (Y[:, 2] > 0)
-    e = (s[:, 0] - prob.shading.cur) * prob.s2
-    return torch.where(ok, e, torch.zeros_like(e)), prob.wph * ok, s[:, 1:3]
-
-
 def objective(T: torch.Tensor, prob: PoseProblem) -> torch.Tensor:
-    """``(B,)`` weighted objective ``sum w2 |e2|^2 + w3 |e3|^2 (+ wph eph^2)`` at ``T`` ``(B, 4, 4)``."""
-    e2, e3, Y = residuals(T, prob)
-    f = (prob.w2d * e2.pow(2).sum(1)).sum(1) + (prob.w3d * e3.pow(2).sum(1)).sum(1)
-    if prob.has_shading:
-        e, w, _ = photometric_residuals(Y, prob)
-        f = f + (w * e.pow(2)).sum(1)
-    return f
+    """``(B,)`` weighted objective ``sum w2 |e2|^2 + w3 |e3|^2`` at ``T`` ``(B, 4, 4)``."""
+    e2, e3, _ = residuals(T, prob)
+    return (prob.w2d * e2.pow(2).sum(1)).sum(1) + (prob.w3d * e3.pow(2).sum(1)).sum(1)
 
 
 def objective_se3(p: torch.Tensor, prob: PoseProblem) -> torch.Tensor:

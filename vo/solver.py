@@ -14,7 +14,7 @@ import torch
 
 from vo.config import SolverConfig
 from vo.lie import se3_exp, se3_exp_fast, se3_log, skew
-from vo.residuals import PoseProblem, objective, objective_se3, photometric_residuals, residuals
+from vo.residuals import PoseProblem, objective, objective_se3, residuals
 
 
 @dataclass(frozen=True)
@@ -118,14 +118,7 @@ def normal_equations(T: torch.Tensor, prob: PoseProblem) -> tuple[torch.Tensor, 
     H3[:, 3:, :3] = Sk
     H3[:, 3:, 3:] = torch.diagonal(swYY, dim1=1, dim2=2).sum(-1)[:, None, None] * eye - swYY
     g3 = torch.cat([(e3d * w3d[:, None]).sum(2), (torch.cross(Yd, e3d, dim=1) * w3d[:, None]).sum(2)], 1)
-    H, g, cost = H + s3 * s3 * H3, g + s3 * g3, cost.double()
-    if prob.has_shading:
-        e, w, grad = photometric_residuals(Y, prob)
-        J = (grad[:, 0, :, None] * ju + grad[:, 1, :, None] * jv).double()   # (B, N, 6): s2 dI/du du/dd
-        wJ = J * w.double()[..., None]
-        H, g = H + wJ.transpose(1, 2) @ J, g + (wJ * e.double()[..., None]).sum(1)
-        cost = cost + (w * e.pow(2)).sum(1).double()
-    return H, g, cost
+    return H + s3 * s3 * H3, g + s3 * g3, cost.double()
 
 
 def _solve_damped(H: torch.Tensor, g: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
@@ -140,7 +133,7 @@ def kernels_for(prob: PoseProblem, kernel: str):
     """The normal equations and the step's exponential: torch's (and kornia's), or with
     ``kernel`` compiled/auto for a CPU problem without gradients the compiled loop of
     ``vo.solver_kernels`` and the closed-form :func:`vo.lie.se3_exp_fast`."""
-    if kernel == "torch" or prob.has_shading:
+    if kernel == "torch":
         return normal_equations, se3_exp
     if kernel not in ("compiled", "auto"):
         raise ValueError(f"unknown solver kernel '{kernel}' (torch, compiled, auto)")

@@ -223,16 +223,8 @@ def sample_weights(w_low: torch.Tensor, pixels: torch.Tensor, height: int, width
     return F.grid_sample(w_low, grid.to(w_low.dtype), mode="bilinear", padding_mode="border", align_corners=False)[:, 0, 0]
 
 
-def network_residuals(residuals: str) -> str:
-    """The weight maps an objective's terms (``weights.residuals``) need: ``2d3dphoto`` weighs
-    its 2D and 3D residuals as ``2d3d`` does, with the same networks and checkpoints (the
-    photometric term's weight is not a network's)."""
-    return "2d3d" if residuals == "2d3dphoto" else residuals
-
-
 def constant_weights(valid: torch.Tensor, w2d: float, w3d: float, residuals: str) -> tuple[torch.Tensor, torch.Tensor]:
     """Constant weight maps ``(B, 1, H, W)`` for the valid pixels; the ablation mode zeroes one."""
-    residuals = network_residuals(residuals)
     v = valid.float()
     w2 = v * (w2d if residuals in ("2d3d", "2d") else 0.0)
     w3 = v * (w3d if residuals in ("2d3d", "3d") else 0.0)
@@ -242,7 +234,6 @@ def constant_weights(valid: torch.Tensor, w2d: float, w3d: float, residuals: str
 def default_checkpoint(residuals: str, filtered_depth: bool = False) -> Path:
     """The packaged checkpoint for a residual mode; with ``filtered_depth`` (``depth.temporal_gain``
     < 1) the one trained on filtered depth, ``weights_{residuals}_filtered.pt``, where there is one."""
-    residuals = network_residuals(residuals)
     if filtered_depth:
         filtered = CHECKPOINT_DIR / f"weights_{residuals}_filtered.pt"
         if filtered.is_file():
@@ -256,7 +247,7 @@ def model_reference_checkpoint(checkpoint: str, checkpoint_model: str, residuals
     the packaged default, the packaged ``weights_{residuals}_model.pt`` if there is one."""
     if checkpoint_model:
         return Path(checkpoint_model)
-    packaged = CHECKPOINT_DIR / f"weights_{network_residuals(residuals)}_model.pt"
+    packaged = CHECKPOINT_DIR / f"weights_{residuals}_model.pt"
     return packaged if not checkpoint and packaged.is_file() else None
 
 
@@ -276,7 +267,6 @@ def load_weight_networks(path: str | Path | None, residuals: str, device: str = 
         the networks in eval mode and the checkpoint's metadata (training config, image size,
         correspondence backend, maximum depth).
     """
-    residuals = network_residuals(residuals)
     path = Path(path) if path else default_checkpoint(residuals, filtered_depth)
     if not path.is_file():
         raise MissingWeightsError(

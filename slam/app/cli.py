@@ -1,7 +1,7 @@
 """The ``slam`` command: a thin layer over the library.
 
     slam run DATA [--mode frame2frame|frame2model] [--config FILE] [--out DIR] [--frames A:B:S | N]
-                  [--weights learned|constant] [--residuals 2d3dphoto|2d3d|2d|3d] [--rerun FILE.rrd | --spawn]
+                  [--weights learned|constant] [--residuals 2d3d|2d|3d] [--rerun FILE.rrd | --spawn]
                   [--export-map] [--mesh] [--set key=value ...]
     slam compare DATA [--out DIR]
     slam eval GT.txt EST.txt
@@ -43,8 +43,7 @@ def _add_run_options(p: argparse.ArgumentParser, out_default: str) -> None:
                    help="replace the results of an earlier run in --out (its files are removed first)")
     p.add_argument("--frames", help="frame selection: N (first N), A:B:S, or A:B:S segments joined by commas")
     p.add_argument("--weights", choices=["learned", "constant"], help="learned weight maps or constant weights")
-    p.add_argument("--residuals", choices=["2d3dphoto", "2d3d", "2d", "3d"],
-                   help="the objective's terms: 2d3dphoto (with the photometric residual), 2d3d (the paper's), 2d or 3d (ablation)")
+    p.add_argument("--residuals", choices=["2d3d", "2d", "3d"], help="residuals used (ablation)")
     p.add_argument("--rerun", metavar="FILE.rrd", help="save a rerun recording")
     p.add_argument("--spawn", action="store_true", help="open the rerun viewer")
     p.add_argument("--export-map", action="store_true", help="write map.ply in frame2frame too")
