@@ -10,10 +10,12 @@ from pathlib import Path
 
 def synthetic(path: str | Path, scenario: str, **options) -> Path:
     """The synthetic sequence of ``scenario`` in ``path``, rendered with ``slam.synth.generate``
-    (keyword ``options``: frames, size, seed, appearance, ...) unless it is there already (its
-    ``synth.json``, the generator's last file)."""
+    (keyword ``options``: frames, size, seed, appearance, ...) unless it is there already and
+    finished (a generation interrupted half-way is rendered again)."""
+    from slam.synth.writer import is_finished
+
     path = Path(path)
-    if not (path / "synth.json").is_file():
+    if not is_finished(path):
         from slam.synth import generate
 
         generate(path, scenario, **options)

@@ -78,8 +78,9 @@ def test_refuses_a_foreign_non_empty_folder(tmp_path):
         generate(tmp_path, "rigid", frames=1, size=(32, 24))
 
 
-def test_an_interrupted_run_can_be_rerun_into_its_folder(tmp_path, monkeypatch):
-    from slam.synth.writer import SequenceWriter
+def test_an_interrupted_run_can_be_rerun_into_its_folder_and_is_not_taken_as_finished(tmp_path, monkeypatch):
+    from benchmarks.runs import synthetic
+    from slam.synth.writer import SequenceWriter, is_finished
 
     write = SequenceWriter.write
 
@@ -92,10 +93,14 @@ def test_an_interrupted_run_can_be_rerun_into_its_folder(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         generate(tmp_path / "seq", "rigid", frames=3, size=(32, 24), seed=1)
     assert (tmp_path / "seq" / "video_frames" / "000000l.png").is_file()
+    assert (tmp_path / "seq" / "synth.json").is_file() and not is_finished(tmp_path / "seq")
     monkeypatch.setattr(SequenceWriter, "write", write)
-    out = generate(tmp_path / "seq", "rigid", frames=3, size=(32, 24), seed=1)
+    # the benchmarks' sequences: an interrupted one is rendered again, not taken as it is
+    out = synthetic(tmp_path / "seq", "rigid", frames=3, size=(32, 24), seed=1)
+    assert is_finished(out)
     assert json.loads((out / "synth.json").read_text())["frames"] == 3
     assert len(list((out / "video_frames").glob("*l.png"))) == 3
+    assert (out / "StereoCalibration.ini").is_file()
 
 
 # -- layout ----------------------------------------------------------------------------------

@@ -28,6 +28,7 @@ import tempfile
 from pathlib import Path
 
 from benchmarks.checkout import run_slam
+from slam.synth.writer import is_finished
 
 ROOT = Path(__file__).resolve().parents[1]
 RERUN = Path(sys.executable).parent / "rerun"
@@ -134,7 +135,7 @@ def main() -> None:
         size, _, frames = spec.partition(":")
         frames = int(frames or 30)
         data = out / "data" / f"{args.scenario}_s{args.seed}_{size}_{frames}"
-        if not (data / "synth.json").is_file():
+        if not is_finished(data):
             slam(ROOT, "synth", str(data), "--scenario", args.scenario, "--frames", str(frames), "--size", size,
                  "--seed", str(args.seed), "--quiet")
         for label, repo in repos:

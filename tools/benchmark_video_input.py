@@ -59,6 +59,7 @@ def main() -> None:
     args = ap.parse_args()
     from slam.app.cli import parse_size
     from slam.synth import generate
+    from slam.synth.writer import is_finished
 
     out = Path(args.out)
     size = parse_size(args.size)
@@ -68,7 +69,7 @@ def main() -> None:
             for variant in args.variants:
                 kind, extra = VARIANTS[variant]
                 data = out / "data" / f"{sc}_s{seed}_{size[0]}x{size[1]}_{args.frames}_{kind}"
-                if not (data / "synth.json").is_file() or json.loads((data / "synth.json").read_text()).get("complete") is False:
+                if not is_finished(data):
                     generate(data, sc, frames=args.frames, size=size, seed=seed, raw=kind != "png",
                              codec=kind if kind != "png" else "mp4v", progress=False)
                 for mode in args.modes:

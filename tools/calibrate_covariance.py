@@ -35,10 +35,11 @@ def run_one(job: dict) -> dict:
     from slam.synth import generate
     from slam.synth.appearance import random_appearance
     from slam.app.tracking_csv import read_tracking_csv
+    from slam.synth.writer import is_finished
 
     torch.set_num_threads(1)
     data = Path(job["data"])
-    if not (data / "synth.json").is_file():
+    if not is_finished(data):
         w, h = job["size"]
         generate(data, job["scenario"], frames=job["frames"], size=(w, h), seed=job["seed"],
                  appearance=random_appearance(job["seed"]))

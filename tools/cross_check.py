@@ -34,9 +34,10 @@ def sequence(job: dict) -> Path:
     """The job's generated sequence (made once)."""
     from slam.synth import generate
     from slam.synth.appearance import parse_appearance
+    from slam.synth.writer import is_finished
 
     data = Path(job["out"]) / "data" / f"{job['scenario']}_{job['seed']}"
-    if not (data / "synth.json").is_file():
+    if not is_finished(data):
         w, h = job["size"]
         generate(data, job["scenario"], frames=job["frames"], size=(w, h), seed=job["seed"],
                  appearance=parse_appearance(job["appearance"], job["seed"]))

@@ -59,6 +59,17 @@ def prepare_out_dir(out_dir: Path) -> None:
     (out_dir / "synth.json").write_text(json.dumps({"generator": "slam.synth", "complete": False}) + "\n")
 
 
+def is_finished(out_dir: Path) -> bool:
+    """Whether ``out_dir`` holds a finished synthetic sequence: a ``synth.json`` that is not the
+    placeholder :func:`prepare_out_dir` writes first (a generation interrupted half-way leaves
+    that one)."""
+    try:
+        meta = json.loads((Path(out_dir) / "synth.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and meta.get("complete", True) is not False
+
+
 def _imwrite(path: Path, img: np.ndarray) -> None:
     if not cv2.imwrite(str(path), img):
         raise DataError(f"{path}: cannot write image")
