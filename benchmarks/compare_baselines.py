@@ -39,8 +39,8 @@ Every trajectory starts at the first ground-truth pose. "fps" is the tracking th
 our stereo depth and without reading frames: Open3D odometry = building Open3D's images + the
 odometry call; Open3D SLAM = its whole per-frame loop (tracking, integration, ray casting); ours =
 the pipeline's tracking work per frame, on whichever thread it ran, without reading and stereo
-depth (flow, weights, solver, and in frame2model rendering, the cross-check and fusion). "fps + depth" adds the stereo depth time (measured when the
-cache was made) to every method. The machine is shared: fps are indicative only.
+depth (flow, weights, solver, and in frame2model rendering, the cross-check and fusion). "fps +
+depth" adds the stereo depth time (measured when the cache was made) to every method. The machine is shared: fps are indicative only.
 
 Outputs in ``--out``: ``baselines.md`` (tables), ``baselines.json`` (rows with parameters),
 ``runs/SEQ/METHOD/trajectory.txt`` (TUM) and our pipeline's usual files, ``logs/`` (child output).

@@ -57,9 +57,8 @@ def main() -> None:
     ap.add_argument("--out", default="runs/video_input")
     ap.add_argument("--set", action="append", default=[])
     args = ap.parse_args()
+    from benchmarks.runs import synthetic
     from slam.app.cli import parse_size
-    from slam.synth import generate
-    from slam.synth.writer import is_finished
 
     out = Path(args.out)
     size = parse_size(args.size)
@@ -69,9 +68,8 @@ def main() -> None:
             for variant in args.variants:
                 kind, extra = VARIANTS[variant]
                 data = out / "data" / f"{sc}_s{seed}_{size[0]}x{size[1]}_{args.frames}_{kind}"
-                if not is_finished(data):
-                    generate(data, sc, frames=args.frames, size=size, seed=seed, raw=kind != "png",
-                             codec=kind if kind != "png" else "mp4v", progress=False)
+                synthetic(data, sc, frames=args.frames, size=size, seed=seed, raw=kind != "png",
+                          codec=kind if kind != "png" else "mp4v", progress=False)
                 for mode in args.modes:
                     jobs.append({"scenario": sc, "seed": seed, "mode": mode, "variant": variant, "data": str(data),
                                  "out": str(out / "runs" / f"{sc}_s{seed}_{mode}_{variant.replace(' ', '').replace(',', '_')}"),

@@ -30,19 +30,16 @@ def run_one(job: dict) -> dict:
     """Generate (once) and track one sequence in one mode; its per-frame NEES and references."""
     import torch
 
+    from benchmarks.runs import synthetic
     from slam.config import load_config
     from slam.app.runner import run_from_config
-    from slam.synth import generate
     from slam.synth.appearance import random_appearance
     from slam.app.tracking_csv import read_tracking_csv
-    from slam.synth.writer import is_finished
 
     torch.set_num_threads(1)
-    data = Path(job["data"])
-    if not is_finished(data):
-        w, h = job["size"]
-        generate(data, job["scenario"], frames=job["frames"], size=(w, h), seed=job["seed"],
-                 appearance=random_appearance(job["seed"]))
+    w, h = job["size"]
+    data = synthetic(job["data"], job["scenario"], frames=job["frames"], size=(w, h), seed=job["seed"],
+                     appearance=random_appearance(job["seed"]))
     cfg = load_config(None, [f"tracking.mode={job['mode']}", "analysis.covariance_scale_frame=1",
                              "analysis.covariance_scale_model=1", "threads=1"])
     out = Path(job["out"])

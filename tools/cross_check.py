@@ -32,16 +32,13 @@ import numpy as np
 
 def sequence(job: dict) -> Path:
     """The job's generated sequence (made once)."""
-    from slam.synth import generate
+    from benchmarks.runs import synthetic
     from slam.synth.appearance import parse_appearance
-    from slam.synth.writer import is_finished
 
-    data = Path(job["out"]) / "data" / f"{job['scenario']}_{job['seed']}"
-    if not is_finished(data):
-        w, h = job["size"]
-        generate(data, job["scenario"], frames=job["frames"], size=(w, h), seed=job["seed"],
-                 appearance=parse_appearance(job["appearance"], job["seed"]))
-    return data
+    w, h = job["size"]
+    return synthetic(Path(job["out"]) / "data" / f"{job['scenario']}_{job['seed']}", job["scenario"],
+                     frames=job["frames"], size=(w, h), seed=job["seed"],
+                     appearance=parse_appearance(job["appearance"], job["seed"]))
 
 
 def run_open_loop(job: dict) -> dict:
