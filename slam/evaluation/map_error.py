@@ -1,6 +1,8 @@
-"""A map's points against a frame's true depth: how far the fused surface lies from the tissue.
+"""A map's points against the truth: a frame's true depth (how far the fused surface lies from the
+tissue), or a reference reconstruction's points.
 
-Used by the map benchmarks and tests on synthetic sequences, whose frames carry exact depth.
+Depth: the map benchmarks and tests on synthetic sequences, whose frames carry exact depth. Points:
+the accuracy gate on the real sequence (``benchmarks/check_accuracy.py``).
 """
 from __future__ import annotations
 
@@ -56,3 +58,29 @@ def depth_errors_mm(points_mm: np.ndarray, T_wc: np.ndarray, K: np.ndarray, R1: 
     idx = np.flatnonzero(seen)
     seen[idx[~ok]] = False
     return seen, err[ok]
+
+
+def reference_point_errors(reference_mm: np.ndarray, map_mm: np.ndarray, within_mm: float = 1.0) -> dict:
+    """A map against a reference reconstruction's points (for example COLMAP's sparse points of a
+    real sequence), both in the same world frame: each reference point's distance to the nearest
+    map point.
+
+    Args:
+        reference_mm: ``(R, 3)`` reference points, mm.
+        map_mm: ``(M, 3)`` the map's points, mm, already moved into the reference's frame (the
+            trajectory's alignment to the reference's).
+        within_mm: the distance the share ``within`` counts up to.
+
+    Returns:
+        ``median_mm`` of the distances, ``within`` the share of reference points closer than
+        ``within_mm``, ``points`` the reference points (``median_mm`` None where the map is empty).
+    """
+    from scipy.spatial import cKDTree
+
+    reference_mm = np.asarray(reference_mm, dtype=np.float64).reshape(-1, 3)
+    map_mm = np.asarray(map_mm, dtype=np.float64).reshape(-1, 3)
+    if not len(map_mm) or not len(reference_mm):
+        return {"median_mm": None, "within": 0.0, "points": int(len(reference_mm))}
+    distances, _ = cKDTree(map_mm).query(reference_mm, k=1)
+    return {"median_mm": float(np.median(distances)), "within": float(np.mean(distances < within_mm)),
+            "points": int(len(reference_mm))}
