@@ -16,10 +16,13 @@ with ``--burst-frames`` frames at step ``B`` in the middle (``--frames 0:60:5,60
 the frame rate, the median step, stays that of ``--gap-step``).
 
 Per row: ATE-RMSE of every frame and of the frames tracked (a failed frame keeps the last good
-pose, so a gap's frames count in the first as if the camera stood still); each frame's error, the translation error of its motion from the last frame
-that was tracked (not failed) against the ground truth's; the frames flagged and failed; the
-largest error and the count above 1 mm among frames neither flagged nor failed (the silent
-errors, the worst thing a tracker can do); recoveries (frames relocalised); for a gap or a burst,
+pose, so a gap's frames count in the first as if the camera stood still); each frame's error, the
+translation error of its motion from the last frame that was tracked (not failed) against the
+ground truth's; the frames flagged and failed; the silent errors along the chain of trusted poses
+(:mod:`slam.evaluation.chain`: each frame neither flagged nor failed, its position against the last
+such frame before it, so that a pose carried wrong from flagged frames counts at the first trusted
+frame that carries it), the largest and the count above 1 mm (the worst thing a tracker can do);
+recoveries (frames relocalised); for a gap or a burst,
 the first frame after it (its error, and whether it was flagged or failed) and how many frames
 after it the first good frame came (unflagged, tracked, error under 1 mm). Writes ``frame_rate.md`` and
 ``frame_rate.json``.
@@ -33,12 +36,12 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.runs import one_thread_config, pipeline, run_in_workers, synthetic, write_report
+from slam.evaluation.chain import SILENT_MM, chain_errors
 
 STEPS = (1, 5, 10, 20)          # 25, 5, 2.5 and 1.25 fps
 GAPS = (5, 10)
 BURSTS = (20,)                  # 1.25 fps for a while in a 5-fps sequence
 GAP_KINDS = ("black", "unreadable")
-SILENT_MM = 1.0                 # a frame's error above this, unflagged, is a silent error
 
 
 def flow_px(data: Path, step: int) -> tuple[float, float]:
@@ -132,6 +135,7 @@ def run_case(job: dict) -> dict:
     failed = np.array([r.failed for r in records])
     flagged = np.array([r.flagged for r in records]) & ~failed
     errors = frame_errors(poses, truth, failed)
+    chain = chain_errors(poses, truth, ~failed & ~flagged)
     tracked = ~failed          # the ATE of the frames with a pose of their own (a failed one keeps the last)
     ate_tracked = None
     if tracked.sum() >= 3:
@@ -141,6 +145,7 @@ def run_case(job: dict) -> dict:
     return {**{k: job[k] for k in ("scenario", "seed", "mode", "step", "gap", "kind", "gap_from", "burst", "after")},
             "ate_rmse_mm": result.metrics.get("ate_rmse_mm"), "ate_tracked_mm": ate_tracked, "frames": len(records),
             "errors_mm": [None if np.isnan(e) else round(float(e), 5) for e in errors],
+            "chain_mm": [None if np.isnan(e) else round(float(e), 5) for e in chain],
             "flagged": np.flatnonzero(flagged).tolist(), "failed": np.flatnonzero(failed).tolist(),
             "relocalised": relocalised}
 
@@ -150,7 +155,8 @@ def summary(case: dict) -> dict:
     errors = np.array([np.nan if e is None else e for e in case["errors_mm"]])
     bad = np.zeros(len(errors), bool)
     bad[case["flagged"] + case["failed"]] = True
-    silent = errors[~bad & np.isfinite(errors)]
+    chain = np.array([np.nan if e is None else e for e in case["chain_mm"]])
+    silent = chain[np.isfinite(chain)]
     row = {"ate": case["ate_rmse_mm"], "ate_tracked": case.get("ate_tracked_mm"), "flagged": len(case["flagged"]), "failed": len(case["failed"]),
            "silent_max": float(silent.max()) if silent.size else 0.0,
            "silent_over": int((silent > SILENT_MM).sum()), "recoveries": len(case["relocalised"]),

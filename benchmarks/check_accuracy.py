@@ -301,6 +301,37 @@ def table(results: list[CaseResult], base: str, new: str) -> str:
 
 
 # ------------------------------------------------------------------------------------------- main
+def run_all(jobs: list[Job], workers: int) -> dict[Path, dict]:
+    """Every job's ``done.json`` record by its folder, ``workers`` runs at once."""
+    records = {}
+    with ThreadPoolExecutor(max(1, workers)) as pool:
+        futures = {pool.submit(run_job, job): job for job in jobs}
+        for n, future in enumerate(as_completed(futures), 1):
+            job = futures[future]
+            records[job.folder] = record = future.result()
+            print(f"[{n}/{len(jobs)}] {job.side.label} {job.case.name} k{job.k}: exit {record['exit']}, "
+                  f"{record['seconds']} s", file=sys.stderr, flush=True)
+    return records
+
+
+def collect(result: CaseResult, label: str, jobs: list[Job], records: dict, points: np.ndarray | None) -> None:
+    """One side's runs of a case into ``result``: their figures, and as problems the runs that did
+    not finish and runs that all wrote the same trajectory."""
+    finished = []
+    for job in jobs:
+        record = records[job.folder]
+        result.dropped = sorted(set(result.dropped) | set(record.get("dropped", [])))
+        if record["exit"] not in FINISHED:
+            result.problems.append(f"{label} run k{job.k} exit {record['exit']}: {record['error']}")
+            continue
+        result.figures.setdefault(label, []).append(
+            figures(job.run_dir, job.data / "groundtruth.txt", job.k, points if job.case.map_error else None))
+        finished.append(job.run_dir)
+    if identical(finished):
+        result.problems.append(f"{label}: its {len(finished)} runs wrote the same trajectory "
+                               "(the moved world frame did not reach them)")
+
+
 def select(cases: list[Case], quick: bool, patterns: list[str] | None) -> list[Case]:
     chosen = [c for c in cases if c.quick or not quick]
     if patterns:
@@ -308,15 +339,23 @@ def select(cases: list[Case], quick: bool, patterns: list[str] | None) -> list[C
     return chosen
 
 
-def prepare(cases: list[Case], out: Path, real: Path | None, runs: int) -> dict[tuple[str, int], Path]:
-    """The moved copies of every sequence the cases track, by (sequence name, k)."""
+def _render(job: tuple) -> Path:
+    return render(*job)
+
+
+def prepare(cases: list[Case], out: Path, real: Path | None, runs: int, workers: int) -> dict[tuple[str, int], Path]:
+    """The moved copies of every sequence the cases track, by (sequence name, k); the synthetic
+    ones rendered first, ``workers`` at once."""
+    from benchmarks.runs import run_in_workers
+
+    sequences = sorted({c.sequence for c in cases}, key=lambda s: s.name)
+    synthetic = [s for s in sequences if not s.real]
+    originals = dict(zip([s.name for s in synthetic],
+                         run_in_workers(_render, [(s, out / "data" / s.name) for s in synthetic], workers)))
     copies = {}
-    for seq in {c.sequence for c in cases}:
-        if seq.real:
-            original, truth = real, REAL_TRAJECTORY
-        else:
-            original = render(seq, out / "data" / seq.name)
-            truth = original / "groundtruth.txt"
+    for seq in sequences:
+        original = real if seq.real else originals[seq.name]
+        truth = REAL_TRAJECTORY if seq.real else original / "groundtruth.txt"
         for k in range(runs):
             copies[(seq.name, k)] = moved_copy(original, truth, k, out / "data" / "moved" / f"{seq.name}_k{k}")
     return copies
@@ -353,39 +392,24 @@ def main(argv: list[str] | None = None) -> int:
         new = Side(f"new {args.new}", new_tree, new_key)
     else:
         new = Side("new", ROOT, working_tree_key())
-    copies = prepare(cases, out, real, args.runs)
+    copies = prepare(cases, out, real, args.runs, max(1, args.workers))
     points = read_points_mm(REAL_POINTS) if any(c.map_error for c in cases) else None
 
-    jobs = [Job(side, case, k, copies[(case.sequence.name, k)], out / "cache" / side.key[:12] / case.name / f"k{k}")
-            for case in cases for k in range(args.runs) for side in (base, new)]
-    records = {}
-    with ThreadPoolExecutor(max(1, args.workers)) as pool:
-        futures = {pool.submit(run_job, job): job for job in jobs}
-        for n, future in enumerate(as_completed(futures), 1):
-            job = futures[future]
-            records[id(job)] = record = future.result()
-            print(f"[{n}/{len(jobs)}] {job.side.label} {job.case.name} k{job.k}: exit {record['exit']}, "
-                  f"{record['seconds']} s", file=sys.stderr, flush=True)
+    def folder(side: Side, case: Case, k: int) -> Path:
+        return out / "cache" / side.key[:12] / case.name / f"k{k}"
 
+    jobs = {}              # one run per folder: a side whose tree equals the other's shares its runs
+    for case in cases:
+        for k in range(args.runs):
+            for side in (base, new):
+                jobs.setdefault(folder(side, case, k), Job(side, case, k, copies[(case.sequence.name, k)],
+                                                           folder(side, case, k)))
+    records = run_all(list(jobs.values()), args.workers)
     results = []
     for case in cases:
         result = CaseResult(case)
         for side in (base, new):
-            mine = [j for j in jobs if j.case is case and j.side is side]
-            finished = []
-            for job in mine:
-                record = records[id(job)]
-                result.dropped = sorted(set(result.dropped) | set(record.get("dropped", [])))
-                if record["exit"] not in FINISHED:
-                    result.problems.append(f"{side.label} run k{job.k} exit {record['exit']}: {record['error']}")
-                    continue
-                truth = job.data / "groundtruth.txt"
-                result.figures.setdefault(side.label, []).append(
-                    figures(job.run_dir, truth, job.k, points if case.map_error else None))
-                finished.append(job.run_dir)
-            if identical(finished):
-                result.problems.append(f"{side.label}: its {len(finished)} runs wrote the same trajectory "
-                                       "(the moved world frame did not reach them)")
+            collect(result, side.label, [jobs[folder(side, case, k)] for k in range(args.runs)], records, points)
         judge_case(result, base.label, new.label)
         results.append(result)
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from benchmarks.benchmark_frame_rate import frame_errors, frame_files, summary, with_gap
+from slam.evaluation.chain import chain_errors
 
 
 def _pose(t) -> np.ndarray:
@@ -26,11 +27,14 @@ def test_frame_errors_measure_each_motion_from_the_last_tracked_frame():
     assert errors[1] == pytest.approx(0.0, abs=1e-9)
     assert errors[2] == pytest.approx(0.3, abs=1e-9)
     assert errors[4] == pytest.approx(0.4, abs=1e-9)
+    chain = chain_errors(poses, truth, np.array([True, True, False, False, True]))
     case = {"errors_mm": [None if np.isnan(e) else e for e in errors], "flagged": [2], "failed": [3],
+            "chain_mm": [None if np.isnan(e) else e for e in chain],
             "relocalised": [], "ate_rmse_mm": 0.1, "frames": 5, "gap": 1, "gap_from": 3, "after": 4}
     row = summary(case)
-    # the flagged frame's 0.3 mm is not silent; the first frame after the one-frame gap errs by 0.4
-    assert row["silent_max"] == pytest.approx(0.4) and row["silent_over"] == 0
+    # the flagged frame's 0.3 mm is not silent itself, but frame 4 carries it: along the chain of
+    # trusted frames (0, 1, 4) its position errs by (0, 0.3, 0.4) against frame 1's
+    assert row["silent_max"] == pytest.approx(0.5) and row["silent_over"] == 0
     assert row["first_after"] == (pytest.approx(0.4), "tracked") and row["back_after"] == 1
 
 
