@@ -174,18 +174,12 @@ def read_flags(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return (np.array([r["flagged"] == "1" for r in rows], bool), np.array([r["failed"] == "1" for r in rows], bool))
 
 
-def read_points_mm(path: Path) -> np.ndarray:
-    import open3d as o3d
-
-    return np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64) * 1000.0
-
-
 def figures(run: Path, truth_file: Path, k: int, points_mm: np.ndarray | None) -> dict:
     """A finished run's figures against its (moved) ground truth; the map's against the reference
     points (``points_mm``, in the unmoved reference frame) where given."""
     from slam.evaluation.chain import silent_summary
-    from slam.evaluation.map_error import reference_point_errors
-    from slam.evaluation.metrics import align, associate, ate_rmse, default_max_diff
+    from slam.evaluation.map_error import read_points_mm, reference_point_errors
+    from slam.evaluation.metrics import align, alignment_transform, associate, ate_rmse, default_max_diff
     from slam.io.tum import read_tum
 
     stamps, poses = read_tum(run / "trajectory.txt")
@@ -200,7 +194,7 @@ def figures(run: Path, truth_file: Path, k: int, points_mm: np.ndarray | None) -
     metrics = json.loads((run / "metrics.json").read_text())
     out["fps"] = metrics.get("fps")
     if points_mm is not None and (run / "map.ply").is_file():
-        move = np.linalg.inv(world_move(k)) @ aligned[0] @ np.linalg.inv(est[0])   # run's world -> reference's
+        move = np.linalg.inv(world_move(k)) @ alignment_transform(est, aligned)    # run's world -> reference's
         cloud = read_points_mm(run / "map.ply")
         errors = reference_point_errors(points_mm, cloud @ move[:3, :3].T + move[:3, 3])
         out.update(map_median_mm=errors["median_mm"], map_within_1mm=errors["within"])
@@ -393,6 +387,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         new = Side("new", ROOT, working_tree_key())
     copies = prepare(cases, out, real, args.runs, max(1, args.workers))
+    from slam.evaluation.map_error import read_points_mm
+
     points = read_points_mm(REAL_POINTS) if any(c.map_error for c in cases) else None
 
     def folder(side: Side, case: Case, k: int) -> Path:

@@ -105,6 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("est", help="estimated TUM file")
     ev.add_argument("--plot", help="also write a trajectory plot (PNG)")
     ev.add_argument("--json", help="also write the metrics as JSON")
+    ev.add_argument("--map", metavar="MAP.ply", help="the run's map (with --points): its error against a reference's points")
+    ev.add_argument("--points", metavar="REF.ply", help="a reference reconstruction's points (PLY, metres, the ground "
+                                                        "truth's world frame), with --map")
     _add_quiet(ev)
 
     sy = sub.add_parser("synth", help="generate synthetic stereo-endoscopy sequences with ground truth",
@@ -232,7 +235,8 @@ def cmd_compare(args) -> int:
 def cmd_eval(args) -> int:
     from slam.app.eval_command import main_eval
 
-    return main_eval(args.gt, args.est, plot_path=args.plot, json_path=args.json)
+    return main_eval(args.gt, args.est, plot_path=args.plot, json_path=args.json, map_path=args.map,
+                     points_path=args.points)
 
 
 def parse_size(text: str) -> tuple[int, int]:

@@ -60,6 +60,24 @@ def depth_errors_mm(points_mm: np.ndarray, T_wc: np.ndarray, K: np.ndarray, R1: 
     return seen, err[ok]
 
 
+def read_points_mm(path) -> np.ndarray:
+    """``(N, 3)`` the points of a PLY file (metres) in mm; a DataError naming the file where it
+    cannot be read or holds no points."""
+    from pathlib import Path
+
+    from slam.errors import DataError
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: point cloud not found")
+    import open3d as o3d
+
+    points = np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
+    if not len(points):
+        raise DataError(f"{path}: no points read (a PLY file with x, y, z in metres is expected)")
+    return points * 1000.0
+
+
 def reference_point_errors(reference_mm: np.ndarray, map_mm: np.ndarray, within_mm: float = 1.0) -> dict:
     """A map against a reference reconstruction's points (for example COLMAP's sparse points of a
     real sequence), both in the same world frame: each reference point's distance to the nearest

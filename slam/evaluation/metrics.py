@@ -149,6 +149,13 @@ def align(gt, est, method: str = "auto") -> tuple[np.ndarray, str]:
     return _align_se3(gt, est), "se3"
 
 
+def alignment_transform(est, aligned) -> np.ndarray:
+    """``(4, 4)`` the rigid transform ``A`` with ``aligned = A @ est`` (the estimate's world frame
+    into the ground truth's, mm): what moves the estimate's map with its trajectory."""
+    est, aligned = np.asarray(est, dtype=np.float64), np.asarray(aligned, dtype=np.float64)
+    return aligned[0] @ np.linalg.inv(est[0])
+
+
 # --------------------------------------------------------------------------------------------
 # metrics
 # --------------------------------------------------------------------------------------------
