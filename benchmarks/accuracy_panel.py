@@ -23,10 +23,11 @@ REAL_TRAJECTORY = REFERENCE / "scared9_colmap_tum.txt"
 REAL_POINTS = REFERENCE / "scared9_colmap_points.ply"
 REAL_ENV = "ENDOSLAM_REAL"
 REAL_DEFAULT = Path("~/.cache/endoslam-real/scared_640")
-REAL_HOWTO = ("it is SCARED dataset_9's keyframe at 640x512 (191 stereo pairs, 5 fps), folder scared_640/ of the "
-              "public repository FelTris/camp2_3drecon: clone it (or fetch it), then `git --git-dir=REPO/.git archive "
-              "HEAD scared_640 | tar -x -C ~/.cache/endoslam-real`; give the folder with --real DIR or "
-              f"{REAL_ENV}=DIR. SCARED's terms: its images never enter this repository")
+REAL_HOWTO = ("it is SCARED dataset_9's keyframe at 640x512 (191 stereo pairs, 5 fps), the folder scared_640/ of the "
+              "public repository FelTris/camp2_3drecon: `git clone --depth 1 https://github.com/FelTris/camp2_3drecon "
+              "/tmp/camp2 && mkdir -p ~/.cache/endoslam-real && cp -r /tmp/camp2/scared_640 ~/.cache/endoslam-real/`, "
+              f"or give its folder with --real DIR or {REAL_ENV}=DIR (SCARED's terms: its images never enter this "
+              "repository)")
 
 #: the gate's own seeds, apart from every seed used to choose a setting (docs/benchmarks.md)
 SEEDS = (9701, 9702)

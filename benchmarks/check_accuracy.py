@@ -21,9 +21,11 @@ A case regressed where ``median_new - median_base > max(range_base, range_new, f
 ATE or its map's median error (floor: 1 % of the base's median or 0.005 mm, whichever is larger)
 or its count of silent frames (floor 0); an improvement by as much is listed, not failed. The
 verdict fails too where a case's ``K`` runs wrote the same trajectory (the perturbation did not
-reach them) or where a run did not finish. Results are cached by the tree's content (a commit's
-tree, or the working tree's: a run of the working tree is reused once it is committed), so a
-second gate against the same base runs only this side, and an interrupted gate resumes.
+reach them) or where a run of the new side did not finish. Results are cached by the content of
+the code a run depends on (``slam/``, ``vo/``, ``mapping/``, ``configs/`` of a commit or of the
+working tree: a run of the working tree is reused once it is committed, and a commit that changes
+only docs, tests or tools reuses the runs of the one before), so a second gate against the same
+base runs only this side, and an interrupted gate resumes.
 """
 from __future__ import annotations
 
@@ -47,6 +49,8 @@ from benchmarks.accuracy_panel import (REAL_POINTS, REAL_TRAJECTORY, ROOT, Case,
                                        render, world_move)
 from benchmarks.checkout import run_slam
 
+#: the folders whose content a run's results depend on (the cache's key)
+RUN_CODE = ("slam", "vo", "mapping", "configs")
 #: a run's exit codes that mean it finished (3: a run that is not a result still wrote every pose)
 FINISHED = (0, 3)
 #: the gated figures: (key, label, floor of the spread as a function of the base's median)
@@ -61,9 +65,17 @@ def git(*args: str, env: dict | None = None) -> str:
                           env={**os.environ, **(env or {})}).stdout.strip()
 
 
+def code_key(tree: str) -> str:
+    """What a run's results depend on in the git tree ``tree`` (a commit or a tree hash): the
+    hash of its code and configs (``RUN_CODE``), not of its docs, tests or tools, so that a commit
+    that changes only those reuses the runs of the one before."""
+    names = [git("rev-parse", f"{tree}:{folder}") for folder in RUN_CODE]
+    return hashlib.sha1(" ".join(names).encode()).hexdigest()
+
+
 def working_tree_key() -> str:
-    """The git tree hash of the working tree's content (tracked and untracked files, ignored ones
-    aside): equal to ``COMMIT^{tree}`` once that content is committed."""
+    """:func:`code_key` of the working tree's content (tracked and untracked files, ignored ones
+    aside): equal to the commit's once that content is committed."""
     with tempfile.TemporaryDirectory() as tmp:
         index = Path(tmp) / "index"
         git_dir = Path(git("rev-parse", "--absolute-git-dir"))
@@ -71,16 +83,16 @@ def working_tree_key() -> str:
             index.write_bytes((git_dir / "index").read_bytes())
         env = {"GIT_INDEX_FILE": str(index)}
         git("add", "-A", ".", env=env)
-        return git("write-tree", env=env)
+        return code_key(git("write-tree", env=env))
 
 
 def checkout(commit: str, out: Path) -> tuple[Path, str]:
-    """A worktree of ``commit`` under ``out/trees`` and its tree hash."""
+    """A worktree of ``commit`` under ``out/trees`` and its :func:`code_key`."""
     sha = git("rev-parse", "--verify", f"{commit}^{{commit}}")
     tree = out / "trees" / sha[:12]
     if not (tree / "slam").is_dir():
         git("worktree", "add", "--detach", "--force", str(tree), sha)
-    return tree, git("rev-parse", f"{sha}^{{tree}}")
+    return tree, code_key(sha)
 
 
 def known_keys(tree: Path) -> set[str]:
@@ -191,8 +203,8 @@ def figures(run: Path, truth_file: Path, k: int, points_mm: np.ndarray | None) -
     out = {"ate_mm": ate_rmse(truth, aligned), "frames": int(len(stamps)),
            "flagged": int(flagged.sum()), "failed": int(failed.sum()),
            **silent_summary(est, truth, flagged[ei], failed[ei])}
-    metrics = json.loads((run / "metrics.json").read_text())
-    out["fps"] = metrics.get("fps")
+    metrics = run / "metrics.json"
+    out["fps"] = json.loads(metrics.read_text()).get("fps") if metrics.is_file() else None
     if points_mm is not None and (run / "map.ply").is_file():
         move = np.linalg.inv(world_move(k)) @ alignment_transform(est, aligned)    # run's world -> reference's
         cloud = read_points_mm(run / "map.ply")
@@ -226,7 +238,8 @@ def identical(runs: list[Path]) -> bool:
 class CaseResult:
     case: Case
     figures: dict = field(default_factory=dict)          # side label -> list of per-run figures
-    problems: list = field(default_factory=list)         # one line each: runs that did not finish, identical runs
+    problems: list = field(default_factory=list)         # the new side's runs that did not finish, identical runs
+    notes: list = field(default_factory=list)            # the same of the base's (they do not fail the gate)
     judged: dict = field(default_factory=dict)           # key -> (verdict, diff, bound)
     dropped: list = field(default_factory=list)
 
@@ -308,22 +321,30 @@ def run_all(jobs: list[Job], workers: int) -> dict[Path, dict]:
     return records
 
 
-def collect(result: CaseResult, label: str, jobs: list[Job], records: dict, points: np.ndarray | None) -> None:
-    """One side's runs of a case into ``result``: their figures, and as problems the runs that did
-    not finish and runs that all wrote the same trajectory."""
+def collect(result: CaseResult, label: str, jobs: list[Job], records: dict, points: np.ndarray | None,
+            fails: bool) -> None:
+    """One side's runs of a case into ``result``: their figures, and the runs that did not finish
+    and runs that all wrote the same trajectory, as problems where the side ``fails`` the gate
+    (the new one), else as notes. A run that stopped with an error after writing every row (an
+    older commit's failing metrics) is measured all the same."""
+    said = result.problems if fails else result.notes
     finished = []
     for job in jobs:
         record = records[job.folder]
         result.dropped = sorted(set(result.dropped) | set(record.get("dropped", [])))
         if record["exit"] not in FINISHED:
-            result.problems.append(f"{label} run k{job.k} exit {record['exit']}: {record['error']}")
+            said.append(f"{label} run k{job.k} exit {record['exit']}: {record['error']}")
+        try:
+            figures_k = figures(job.run_dir, job.data / "groundtruth.txt", job.k,
+                                points if job.case.map_error else None)
+        except Exception as err:       # (what the run left cannot be read: said, not measured)
+            said.append(f"{label} run k{job.k} not measured: {err}")
             continue
-        result.figures.setdefault(label, []).append(
-            figures(job.run_dir, job.data / "groundtruth.txt", job.k, points if job.case.map_error else None))
+        result.figures.setdefault(label, []).append(figures_k)
         finished.append(job.run_dir)
     if identical(finished):
-        result.problems.append(f"{label}: its {len(finished)} runs wrote the same trajectory "
-                               "(the moved world frame did not reach them)")
+        said.append(f"{label}: its {len(finished)} runs wrote the same trajectory "
+                    "(the moved world frame did not reach them)")
 
 
 def select(cases: list[Case], quick: bool, patterns: list[str] | None) -> list[Case]:
@@ -405,7 +426,8 @@ def main(argv: list[str] | None = None) -> int:
     for case in cases:
         result = CaseResult(case)
         for side in (base, new):
-            collect(result, side.label, [jobs[folder(side, case, k)] for k in range(args.runs)], records, points)
+            collect(result, side.label, [jobs[folder(side, case, k)] for k in range(args.runs)], records, points,
+                    fails=side is new)
         judge_case(result, base.label, new.label)
         results.append(result)
 
@@ -415,6 +437,7 @@ def main(argv: list[str] | None = None) -> int:
              f"{(time.time() - t0) / 60:.1f} min"]
     if dropped:
         notes.append(f"options the base lacks, not passed to it: {', '.join(dropped)}")
+    notes += [f"{r.case.name}: {n}" for r in results for n in r.notes]
     line = verdict(results)
     report = "\n".join([text, "", *notes, "", line])
     print(report)
@@ -423,6 +446,6 @@ def main(argv: list[str] | None = None) -> int:
     (out / "reports" / f"{name}.md").write_text(report + "\n")
     (out / "reports" / f"{name}.json").write_text(json.dumps(
         {"base": args.base, "verdict": line, "cases": [
-            {"case": r.case.name, "figures": r.figures, "problems": r.problems,
+            {"case": r.case.name, "figures": r.figures, "problems": r.problems, "notes": r.notes,
              "judged": {k: list(v) for k, v in r.judged.items()}} for r in results]}, indent=1))
     return 0 if line.startswith("PASS") else 1

@@ -196,3 +196,31 @@ def test_the_gate_end_to_end_on_a_small_sequence(tmp_path, monkeypatch, capsys):
     stamps = {p: p.stat().st_mtime_ns for p in (out / "cache").glob("*/tiny-f2m/k*/done.json")}
     assert main(["--base", "HEAD", "--quick", "--runs", "2", "--out", str(out)]) == 0
     assert {p: p.stat().st_mtime_ns for p in (out / "cache").glob("*/tiny-f2m/k*/done.json")} == stamps
+
+
+def test_a_run_that_did_not_finish_fails_the_new_side_and_is_a_note_on_the_base(tmp_path):
+    """The base's failures are its own (an older commit's metrics that stopped with an error after
+    every row was written is still measured); the new side's fail the gate."""
+    from benchmarks.accuracy_panel import Case, Sequence
+    from benchmarks.check_accuracy import Job, Side, collect
+
+    stamps = np.arange(6) * 0.2
+    truth = np.stack([np.eye(4) for _ in stamps])
+    truth[:, 0, 3] = np.arange(6) * 1.0
+    (tmp_path / "seq").mkdir()
+    write_tum(tmp_path / "seq" / "groundtruth.txt", stamps, truth)
+    case = Case("c", Sequence("s", "rigid", 6), "frame2frame")
+    jobs, records = [], {}
+    for k in (0, 1):
+        folder = tmp_path / f"k{k}"
+        _run(folder / "run", world_move(k) @ truth, np.zeros(6, bool), stamps)
+        jobs.append(Job(Side("x", tmp_path, "t"), case, k, tmp_path / "seq", folder))
+        records[folder] = {"exit": 0 if k == 0 else 2, "error": "slam run: error: relative pose error"}
+    for fails in (False, True):
+        r = CaseResult(case)
+        collect(r, "side", jobs, records, None, fails=fails)
+        assert len(r.figures["side"]) == 2 and r.figures["side"][1]["ate_mm"] < 1e-3
+        said = r.problems if fails else r.notes
+        assert said == ["side run k1 exit 2: slam run: error: relative pose error"]
+        assert (r.notes if fails else r.problems) == []
+        assert verdict([r]).startswith("FAIL" if fails else "PASS")
