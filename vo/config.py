@@ -25,9 +25,10 @@ def need(ok: bool, message: str) -> None:
 
 
 # the left-right check's flow back runs at DIS `fast` where `fast`'s working resolution (a quarter
-# of the image) is at least this wide: 160 px at 640x512 kept the ATE within 1 %, 80 px at 320x256
-# made the check less selective (docs/experiments.md, "Does the left-right check need a `medium`
-# flow back?")
+# of the image) is at least this wide (640x512 and above); 80 px at 320x256 made the check less
+# selective. At 640x512 the preset moves frame2frame either way by a third on weak texture (our
+# generator: `medium` +35 %; another generator: `fast` +35 %) and frame2model within its spread on
+# real video (docs/experiments.md, "Does the left-right check need a `medium` flow back?")
 LR_CHECK_FAST_MIN_WIDTH = 128
 
 
@@ -49,12 +50,16 @@ class CorrespondenceConfig:
         dis_preset: DIS preset for the temporal flow: ``ultrafast`` | ``fast`` | ``medium``.
         dis_stereo_preset: DIS preset for the stereo parallax flow.
         dis_lr_check_preset: DIS preset for the flow back of the left-right check (right ->
-            left, ``lr_check_px``), which only says which depths to keep. ``fast`` costs 7 ms
-            against ``medium``'s 38 at 640x512 and moves the ATE there by at most 1 %; at
-            320x256 its working resolution (a quarter of the image: 80 px wide) makes the check
-            less selective (docs/experiments.md, "Speed"). ``auto`` (default): ``fast`` where
-            that working resolution is at least ``LR_CHECK_FAST_MIN_WIDTH`` px wide, else
-            ``medium`` (:func:`lr_check_preset`).
+            left, ``lr_check_px``), which only says which depths to keep. ``auto`` (default):
+            ``fast`` where its working resolution (a quarter of the image) is at least
+            ``LR_CHECK_FAST_MIN_WIDTH`` px wide (640x512 and above), else ``medium``
+            (:func:`lr_check_preset`; at 320x256 ``fast`` makes the check less selective). At
+            640x512 ``fast`` costs 7 ms against ``medium``'s 38 and is not "within 1 %": on the
+            real SCARED sequence frame2frame 1.33 mm against 1.38 with ``medium``, frame2model
+            within its run-to-run spread, the map's error 0.274 against 0.260 mm; on this
+            project's weak-texture look frame2frame 0.44 against 0.60 mm; on another generator's
+            weak-texture scene ``fast`` was the worse by 35 % (docs/experiments.md, "Does the
+            left-right check need a `medium` flow back?").
         dis_match_exposure: brighten the darker image of each pair to the other's mean before
             DIS (``vo.correspondence.dis.match_exposure``: exposure jumps between frames).
         raft_checkpoint: path to a RAFT checkpoint (RAFT or RAFT-small, told apart by its tensors).
