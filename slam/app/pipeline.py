@@ -27,7 +27,7 @@ from slam.app.prefetch import Prefetcher
 from slam.app.progress import Progress
 from slam.app.run_folder import replaced_atomically, write_json_atomically
 from slam.app.thread_use import ThreadBudget, ThreadClock, pool_sizes
-from slam.tracking.state import FrameResult
+from slam.tracking.state import TRUST, FrameResult
 from slam.tracking.tracker import KnownPoseMapper, Tracker
 from slam.app.tracking_csv import TrackingCsvWriter
 from slam.io.tum import TumStreamWriter
@@ -54,6 +54,7 @@ class FrameRecord:
     health: dict = field(default_factory=dict)   # slam.tracking.health.FIGURES of the frame
     reference_position: Optional[int] = None      # the processed frame it was tracked against
     flagged: bool = False   # an inconsistent or uncertain pose (slam.tracking.tracker.FrameResult.flagged)
+    trust: str = ""         # what the pose rests on (slam.tracking.state.TRUST)
 
 
 @dataclass
@@ -223,9 +224,10 @@ class Pipeline:
         if record.failed:
             log.warning("frame %d: %s (pose carried over)", record.index, record.reason)
         elif record.flagged:
-            log.warning("frame %d flagged: %s (not fused)", record.index, record.reason)
+            log.warning("frame %d flagged: %s%s", record.index, record.reason,
+                        "" if "re-anchored" in record.reason or "rebuilt" in record.reason else " (not fused)")
         writer.write(record.timestamp, record.pose)
-        health_csv.write(record.index, record.timestamp, record.failed, record.flagged, record.reason,
+        health_csv.write(record.index, record.timestamp, record.failed, record.flagged, record.trust, record.reason,
                          record.reference, self._reference_frame(record), record.health)
         result.records.append(record)
         self._time("total", (time.perf_counter() - t_frame) * 1000.0)
@@ -287,7 +289,7 @@ class Pipeline:
             self._time("read", (time.perf_counter() - t0) * 1000.0)
         except DataError as err:
             self._rect_poses.append(self.tracker.pose)
-            return FrameRecord(index, stamp, self.tracker.pose @ self.R1, True, f"unreadable frame: {err}")
+            return FrameRecord(index, stamp, self.tracker.pose @ self.R1, True, f"unreadable frame: {err}", trust="failed")
         for stage, ms in timings.items():
             self._time(stage, ms)
         result = self.tracker.track(k, view, ahead)
@@ -298,7 +300,7 @@ class Pipeline:
         record = FrameRecord(index, stamp, pose, result.failed, result.reason, result.reference,
                              track.iterations if track is not None else 0,
                              track.cost if track is not None else float("nan"), dict(result.health),
-                             result.reference_position, result.flagged)
+                             result.reference_position, result.flagged, result.trust)
         record.health["nees"] = self._nees(k, result)
         self._log(k, frame, result.view or view, track, result.pose, record)
         return record
@@ -348,13 +350,14 @@ class Pipeline:
         write_json_atomically(self.out_dir / "metrics.json", result.metrics)
 
     def _final_trajectory(self, result: RunResult) -> tuple[np.ndarray, Optional[np.ndarray]]:
-        """The poses the run reports ``(N, 4, 4)`` (original left camera, mm) and, with loop
-        closure, the poses as tracked (else None). With loop closure the optimised poses are the
+        """The poses the run reports ``(N, 4, 4)`` (original left camera, mm) and, where they
+        differ from those tracked, the poses as tracked (else None). The repairs of unconfirmed
+        stretches (:mod:`slam.tracking.chain_repair`) and loop closure's optimisations make the
         result: ``trajectory.txt`` is rewritten with them, the streamed one kept as
         ``trajectory_online.txt``."""
         records = result.records
         tracked = np.stack([r.pose for r in records]) if records else np.zeros((0, 4, 4))
-        optimised = self.tracker.optimised_poses(range(len(records)))
+        optimised = self.tracker.optimised_poses(np.stack(self._rect_poses)) if records else None
         if optimised is None or not records:
             return tracked, None
         from slam.io.tum import write_tum
@@ -383,6 +386,7 @@ class Pipeline:
             "failures": {str(r.index): r.reason for r in records if r.failed},
             "flagged_frames": [r.index for r in records if r.flagged],
             "flags": {str(r.index): r.reason for r in records if r.flagged},
+            "trust": {name: sum(r.trust == name for r in records) for name in TRUST},
             "fps": (done - failed) / wall_s if wall_s > 0 else 0.0,
             "timings_ms": {k: float(np.mean(v)) for k, v in self.timings.items()},
             "thread_cpu_ms": self._cpu.summary(done),
@@ -391,6 +395,8 @@ class Pipeline:
             "frame_rate": self.frame_rate,
             "model_fallbacks": self.tracker.fallbacks,
             "model_rebuilds": self.tracker.rebuilds,
+            "map_reanchors": self.tracker.reanchors,
+            "repaired_frames": self.tracker.repaired_frames,
             "health": health_summary([r.health for r in records]),
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         }

@@ -43,10 +43,14 @@ every ``logging.rerun_every``-th frame, 0, N, 2N, ...):
   last frame) with the optimised positions. ``world/trajectory/ground_truth/part_NNNN``: the same
   for the ground truth (when it exists), ``world/trajectory/as_tracked`` and
   ``world/trajectory/loop_edges`` (loop closure): once, at the end.
+- ``world/trajectory/trust/part_NNNN``: Points3D of the same positions, each coloured by what its
+  pose rests on (:data:`TRUST_COLORS`: confirmed or tracked green, unconfirmed orange, flagged
+  yellow, failed red), logged as the estimate's parts are.
 - ``world/map``: coloured Points3D of the stable surfels every ``map_every`` frames and at the end.
 - ``metrics/fps`` (from the second frame on), ``metrics/solver_iterations``,
   ``metrics/solver_cost`` (when finite), ``metrics/translation_error_mm`` (with ground truth),
-  ``metrics/failed`` (0/1), and the ``health/*`` figures: every frame.
+  ``metrics/failed``, ``metrics/flagged`` and ``metrics/unconfirmed`` (0/1, one plot), and the
+  ``health/*`` figures: every frame.
 """
 from __future__ import annotations
 
@@ -75,10 +79,12 @@ VALID = "world/camera/valid"
 TRAJ_EST = "world/trajectory/estimate"
 TRAJ_GT = "world/trajectory/ground_truth"
 TRAJ_ONLINE = "world/trajectory/as_tracked"
+TRAJ_TRUST = "world/trajectory/trust"
 LOOP_EDGES = "world/trajectory/loop_edges"
 MAP = "world/map"
+STATES = ("metrics/failed", "metrics/flagged", "metrics/unconfirmed")
 METRICS = ("metrics/fps", "metrics/solver_iterations", "metrics/solver_cost",
-           "metrics/translation_error_mm", "metrics/failed")
+           "metrics/translation_error_mm") + STATES
 
 # Encodings (measured on 640x512 synthetic frames, tools/benchmark_recording.py): JPEG at 90 keeps
 # the image within 0.5 dB PSNR of 95 at 2/3 of its bytes (~53 kB); the colour codes are views of
@@ -96,6 +102,11 @@ EST_COLOR = (255, 140, 0)
 GT_COLOR = (40, 200, 80)
 ONLINE_COLOR = (160, 160, 160)
 LOOP_COLOR = (230, 40, 200)
+# what a pose rests on (slam.tracking.state.TRUST): trusted green, unconfirmed orange, flagged
+# yellow, failed red
+TRUST_COLORS = {"confirmed": (40, 200, 80), "tracked": (40, 200, 80), "known": (40, 200, 80),
+                "unconfirmed": (255, 120, 0), "flagged": (255, 220, 0), "failed": (230, 30, 30)}
+STATE_COLORS = {"metrics/failed": (255, 0, 0), "metrics/flagged": (255, 220, 0), "metrics/unconfirmed": (255, 120, 0)}
 
 # viridis at 9 evenly spaced stops (enough for a smooth linear interpolation)
 _VIRIDIS = np.array([
@@ -279,7 +290,7 @@ def make_blueprint() -> rrb.Blueprint:
         rrb.TimeSeriesView(origin="metrics/translation_error_mm", name="translation error (mm)"),
         rrb.TimeSeriesView(origin="metrics/solver_iterations", name="solver iterations"),
         rrb.TimeSeriesView(origin="metrics/solver_cost", name="solver cost"),
-        rrb.TimeSeriesView(origin="metrics/failed", name="failed"),
+        rrb.TimeSeriesView(origin="metrics", contents=list(STATES), name="failed / flagged / unconfirmed"),
         grid_columns=5,
     )
     return rrb.Blueprint(
@@ -318,6 +329,7 @@ class RerunLogger:
         self.map_every = int(getattr(config, "map_every", 0) or 0)
         self.rerun_every = max(int(getattr(config, "rerun_every", 1) or 1), 1)
         self.positions: list[np.ndarray] = []  # estimated positions so far, m (the only history kept)
+        self.trust_colors: list[tuple] = []     # their colours by trust (TRUST_COLORS)
         self._gt_positions = None if self.gt_poses is None else self.gt_poses[:, :3, 3] / 1000.0
         self._parts: dict[str, int] = {}  # trajectory entity -> parts logged
         self._last_k: Optional[int] = None
@@ -341,7 +353,7 @@ class RerunLogger:
                      static=True)
         for path, color in (("metrics/fps", (80, 160, 255)), ("metrics/translation_error_mm", (255, 80, 80)),
                             ("metrics/solver_iterations", (200, 200, 200)), ("metrics/solver_cost", (255, 200, 0)),
-                            ("metrics/failed", (255, 0, 0))):
+                            *STATE_COLORS.items()):
             self.rec.log(path, rr.SeriesLines(colors=[color], names=[path.split("/")[-1]]), static=True)
         self._log_pinhole(camera)
 
@@ -420,6 +432,12 @@ class RerunLogger:
         self.positions.append(pose[:3, 3] / 1000.0)
         start = (int(k) // TRAJ_PART_FRAMES) * TRAJ_PART_FRAMES
         self._log_part(TRAJ_EST, self.positions, start, int(k), EST_COLOR, "estimate")
+        self.trust_colors.append(TRUST_COLORS.get(getattr(record, "trust", ""), EST_COLOR))
+        part = slice(start, int(k) + 1)
+        rec.log(f"{TRAJ_TRUST}/part_{start // TRAJ_PART_FRAMES:04d}",
+                rr.Points3D(np.asarray(self.positions[part], dtype=np.float32).reshape(-1, 3),
+                            colors=np.asarray(self.trust_colors[part], dtype=np.uint8),
+                            radii=rr.Radius.ui_points(3.0)))
         gt = self._gt(k)
         if self._gt_positions is not None and k < len(self._gt_positions):
             self._log_part(TRAJ_GT, self._gt_positions, start, int(k), GT_COLOR, "ground truth")
@@ -444,6 +462,8 @@ class RerunLogger:
         if gt is not None:
             rec.log("metrics/translation_error_mm", rr.Scalars(float(np.linalg.norm(pose[:3, 3] - gt[:3, 3]))))
         rec.log("metrics/failed", rr.Scalars(1.0 if record.failed else 0.0))
+        rec.log("metrics/flagged", rr.Scalars(1.0 if getattr(record, "flagged", False) else 0.0))
+        rec.log("metrics/unconfirmed", rr.Scalars(1.0 if getattr(record, "trust", "") == "unconfirmed" else 0.0))
         for name, value in (getattr(record, "health", None) or {}).items():   # slam.tracking.health.FIGURES
             if value is not None and np.isfinite(float(value)):
                 rec.log(f"health/{name}", rr.Scalars(float(value)))

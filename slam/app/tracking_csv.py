@@ -11,7 +11,7 @@ import numpy as np
 
 from slam.tracking.health import FIGURES
 
-COLUMNS = ("frame", "timestamp", "failed", "flagged", "reason", "reference", "reference_frame") + FIGURES
+COLUMNS = ("frame", "timestamp", "failed", "flagged", "trust", "reason", "reference", "reference_frame") + FIGURES
 
 
 class TrackingCsvWriter:
@@ -25,10 +25,10 @@ class TrackingCsvWriter:
         self._csv.writerow(COLUMNS)
         self._fh.flush()
 
-    def write(self, frame: int, timestamp: float, failed: bool, flagged: bool, reason: str, reference: str,
-              reference_frame: int | None, figures: dict) -> None:
+    def write(self, frame: int, timestamp: float, failed: bool, flagged: bool, trust: str, reason: str,
+              reference: str, reference_frame: int | None, figures: dict) -> None:
         assert self._fh is not None, "writer closed"
-        row = [frame, f"{timestamp:.6f}", int(failed), int(flagged), reason, reference,
+        row = [frame, f"{timestamp:.6f}", int(failed), int(flagged), trust, reason, reference,
                "" if reference_frame is None else reference_frame]
         row += [_number(figures.get(name)) for name in FIGURES]
         self._csv.writerow(row)
@@ -57,7 +57,7 @@ def read_tracking_csv(path: str | Path) -> dict[str, np.ndarray]:
     out = {}
     for name in COLUMNS:
         values = [r[name] for r in rows]
-        if name in ("reason", "reference"):
+        if name in ("trust", "reason", "reference"):
             out[name] = np.array(values, dtype=object)
         else:
             out[name] = np.array([float(v) if v != "" else np.nan for v in values])

@@ -84,8 +84,14 @@ class CrossCheck:
         """A frame tracked against the previous frame alone: its uncertainty adds up."""
         self.P = self.P + covariance
 
-    def check(self, model: Estimate, frame: Estimate) -> CrossCheckResult:
-        """Combine or choose between the model view's and the last frame's estimates."""
+    def check(self, model: Estimate, frame: Estimate, chain_checked: bool = True) -> CrossCheckResult:
+        """Combine or choose between the model view's and the last frame's estimates. Where they
+        disagree the better-supported is kept: the smaller positional spread of the two. Where the
+        chain holds a relocalisation the map never checked, the chain's spread includes its ``P``,
+        and where
+        the two are inconsistent beyond ``limit_d2`` the model view's is kept whatever the spreads:
+        the map, the evidence of every frame fused, outranks a chain it never confirmed that claims
+        to be surer than they are, and the track snaps back to it (flagged)."""
         P_pred = self.P + frame.covariance
         S = P_pred + model.covariance
         delta = relative_error(model.relative, frame.relative)         # M = exp(delta) F
@@ -97,7 +103,9 @@ class CrossCheck:
             self.P = 0.5 * (P + P.T)
             step = se3_exp(torch.from_numpy(K @ delta)[None])[0].numpy()
             return CrossCheckResult(step @ frame.relative, self.P.copy(), d2, distance, "combined")
-        if np.trace(frame.covariance[:3, :3]) <= np.trace(model.covariance[:3, :3]):
+        frame_spread = frame.covariance if chain_checked else P_pred
+        chain_refuted = not chain_checked and not d2 <= self.limit_d2
+        if not chain_refuted and np.trace(frame_spread[:3, :3]) <= np.trace(model.covariance[:3, :3]):
             self.P = P_pred
             return CrossCheckResult(frame.relative, P_pred.copy(), d2, distance, "frame")
         self.P = np.array(model.covariance, dtype=np.float64)

@@ -50,6 +50,9 @@ class NoGraph:
     def optimised_poses(self, positions: range) -> None:
         return None
 
+    def correct(self, position: int, pose: np.ndarray) -> None:
+        """(No graph to hold the corrected pose.)"""
+
 
 class LoopClosureGraph(NoGraph):
     """Loop closure and relocalisation on a pose graph of keyframes (see the module docstring).
@@ -64,6 +67,7 @@ class LoopClosureGraph(NoGraph):
         self.covariance_scale_model = covariance_scale_model
         self.loops: Optional[LoopClosure] = None       # made at the first frame
         self.places: Optional[PlaceRecognition] = None
+        self.model_from: Optional[int] = None          # the map re-anchored here: nothing before it is active
 
     def start(self, tracker, position: int, view: View) -> None:
         self.loops = LoopClosure(self.config, tracker.state.pose, position)
@@ -71,8 +75,16 @@ class LoopClosureGraph(NoGraph):
         self.remember_place(position, view)
 
     def active_from(self, position: int) -> Optional[int]:
-        """The first frame whose surfels are in the active model at ``position`` (None: all)."""
-        return self.loops.active_from(position) if self.loops is not None else None
+        """The first frame whose surfels are in the active model at ``position`` (None: all): the
+        time window's, or the frame where the map last re-anchored, whichever is later."""
+        window = self.loops.active_from(position) if self.loops is not None else None
+        starts = [p for p in (window, self.model_from) if p is not None]
+        return max(starts) if starts else None
+
+    def set_aside(self, position: int) -> None:
+        """The active map before ``position`` set aside (the map re-anchors there); the inactive
+        model keeps it for loops."""
+        self.model_from = position
 
     def relocalised_after_gap(self, tracker, position: int, view: View, result: FrameResult) -> bool:
         """After ``RELOCALISE_AFTER_MISSED`` frames that could not be read, relocalise the frame
@@ -82,7 +94,7 @@ class LoopClosureGraph(NoGraph):
             return False
         result.reference = "relocalised"
         result.reason = f"relocalised after {missed} frames that could not be read; " + result.reason
-        self.loops.add_frame(position, result.pose, None)
+        self.loops.add_frame(position, result.pose, None, may_be_keyframe=False)
         return True
 
     def after_failure(self, tracker, position: int, view: View, result: FrameResult) -> None:
@@ -91,7 +103,7 @@ class LoopClosureGraph(NoGraph):
         reason = result.reason
         if self.relocalise(tracker, position, view, result):
             result.reason = f"{reason}; " + result.reason
-        self.loops.add_frame(position, tracker.state.pose, None)
+        self.loops.add_frame(position, tracker.state.pose, None, may_be_keyframe=False)
 
     def recovered(self, tracker, position: int, view: View, result: FrameResult) -> bool:
         """(A frame keeps its estimate: the graph relocalises failed frames only.)"""
@@ -101,11 +113,17 @@ class LoopClosureGraph(NoGraph):
         """(Its relocalisation's candidates are the graph's keyframes, :meth:`add`.)"""
 
     def add(self, tracker, position: int, view: View, pose: np.ndarray, result: FrameResult) -> None:
-        """A tracked frame: a new graph keyframe closes loops and is remembered by its looks."""
-        if self.loops.add_frame(position, pose, result.covariance):
+        """A tracked frame: a new graph keyframe (only a trusted frame becomes one) closes loops and
+        is remembered by its looks."""
+        if self.loops.add_frame(position, pose, result.covariance, may_be_keyframe=result.trusted):
             self.close_loop(tracker, position, view, result)
             if not self.loops.cull(position):
                 self.remember_place(position, view)
+
+    def correct(self, position: int, pose: np.ndarray) -> None:
+        """The corrected pose of a frame of a repaired stretch, before the graph's corrections
+        (:meth:`slam.tracking.loop_closure.LoopClosure.correct`)."""
+        self.loops.correct(position, pose)
 
     def optimised_poses(self, positions: range) -> Optional[np.ndarray]:
         """``(N, 4, 4)`` rectified ``T_wc`` of ``positions`` after the graph's optimisations."""
@@ -173,7 +191,7 @@ class LoopClosureGraph(NoGraph):
         if model_coverage(mv.valid, view.valid[0, 0]) < LOOP_MIN_COVERAGE:
             result.time("relocalise", t0)
             return False
-        reg, _, reason = self.register_to_model(tracker, view, mv)
+        reg, covariance, reason = self.register_to_model(tracker, view, mv)
         if reason:
             result.time("relocalise", t0)
             return False
@@ -181,9 +199,9 @@ class LoopClosureGraph(NoGraph):
         result.pose = guess @ reg.relative
         result.reason = f"relocalised against the keyframe at frame {match.position} ({moved:.1f} mm from the last pose)"
         tracker.state.velocity = np.eye(4)
-        result.reference = "relocalised"
+        result.reference, result.covariance, result.flagged = "relocalised", covariance, True
         tracker.advance(position, view, result.pose, result)
-        tracker.acceptance.reset()
+        tracker.acceptance.relocalised(position, result)
         log.info("frame %d relocalised against the keyframe at frame %d: %.2f mm from the last pose",
                  position, match.position, moved)
         result.time("relocalise", t0)

@@ -128,17 +128,19 @@ class LoopClosure:
         self.culled = 0
 
     # ------------------------------------------------------------------ steps 1-2
-    def add_frame(self, position: int, pose: np.ndarray, covariance: Optional[np.ndarray]) -> bool:
+    def add_frame(self, position: int, pose: np.ndarray, covariance: Optional[np.ndarray],
+                  may_be_keyframe: bool = True) -> bool:
         """Add the tracked frame at ``position`` with its ``pose`` and the ``(6, 6)`` covariance of
         its motion from the last frame (left perturbation, translation first; None: unknown);
-        returns whether it became a graph keyframe."""
+        returns whether it became a graph keyframe (never where not ``may_be_keyframe``: a pose
+        that is not trusted)."""
         pose = np.asarray(pose, dtype=np.float64)
         motion = np.linalg.inv(self.last_pose) @ pose
         cov = UNKNOWN_MOTION_COVARIANCE if covariance is None else covariance
         self._edge = compose(*self._edge, motion, to_gtsam_covariance(motion, cov))
         self.last_pose = pose.copy()
         k = len(self.graph) - 1
-        if not self._apart(self._candidate, pose):
+        if not (may_be_keyframe and self._apart(self._candidate, pose)):
             self.frames[int(position)] = (k, np.linalg.inv(self.graph.poses[k]) @ pose)
             return False
         self._candidate = pose.copy()
@@ -256,6 +258,14 @@ class LoopClosure:
         """The current (optimised) ``T_wc`` of the tracked frame at ``position``."""
         k, rel = self.frames[int(position)]
         return self.graph.poses[k] @ rel
+
+    def correct(self, position: int, pose: np.ndarray) -> None:
+        """A frame's pose corrected outside the graph (a repaired stretch): held against its
+        graph keyframe, so that the graph's optimisations move it from there. (A keyframe's own
+        pose is the graph's; a stretch holds none, its frames being untrusted.)"""
+        k, rel = self.frames.get(int(position), (None, None))
+        if k is not None and not np.allclose(rel, np.eye(4)):
+            self.frames[int(position)] = (k, np.linalg.inv(self.graph.poses[k]) @ np.asarray(pose, np.float64))
 
     def optimised_poses(self, positions: range) -> np.ndarray:
         """``(N, 4, 4)`` optimised ``T_wc`` of ``positions``; a frame the tracker never saw takes

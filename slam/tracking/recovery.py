@@ -129,10 +129,13 @@ class FrameRelocaliser:
         no longer agree)."""
         return self.model_from
 
+    def set_aside(self, position: int) -> None:
+        """The map before ``position`` set aside (:meth:`active_from`): the map re-anchors there."""
+        self.model_from = position
+
     def remember(self, position: int, view: View, pose: np.ndarray, result: FrameResult) -> None:
-        """Keep a tracked frame as a candidate unless it was flagged (a relocalised frame is kept
-        by :meth:`relocalise`)."""
-        if not result.flagged:
+        """Keep a trusted frame as a candidate (a relocalised frame is kept by :meth:`relocalise`)."""
+        if result.trusted:
             self.recent.add(position, view, pose)
 
     def relocalised_after_gap(self, tracker, position: int, view: View, result: FrameResult) -> bool:
@@ -158,7 +161,7 @@ class FrameRelocaliser:
         if self.recover(tracker, position, view, result):
             return True
         if result.flagged and position == self.after_gap:
-            self.model_from = position
+            self.set_aside(position)
             result.reason += "; the map before the gap set aside"
             log.warning("frame %d after a gap was not recovered: the map before it is set aside", position)
         return False
@@ -172,7 +175,7 @@ class FrameRelocaliser:
         estimates and the pose its features give; True where it was (its pose replaced, still
         flagged)."""
         track = result.track
-        if track is None:
+        if track is None or result.snapped_to_map:      # (the map refuted an unconfirmed chain: not lost)
             return False
         width = view.depth.shape[-1]
         flow_px = float(track.flow[..., ::GATE_STRIDE, ::GATE_STRIDE].norm(dim=1).median())
@@ -244,6 +247,7 @@ class FrameRelocaliser:
         moved = float(np.linalg.norm(pose[:3, 3] - state.pose[:3, 3]))
         result.pose, result.track, result.view = pose, reg, reg.view
         result.reference, result.reference_position = "relocalised", cand.position
+        result.snapped_to_map, result.map_correction = False, None      # (the pose is no longer the map's)
         tracker.acceptance.assess(result, reg)
         tracker.acceptance.flag_uncertain(result)
         result.flagged = True      # (a registration across the gap: not fused, the next frames go from it)
@@ -251,7 +255,7 @@ class FrameRelocaliser:
         state.velocity = np.linalg.inv(state.pose) @ pose if position == state.position + 1 else np.eye(4)
         tracker.references.forget_keyframe()
         tracker.advance(position, reg.view, pose, result)
-        tracker.acceptance.reset()
+        tracker.acceptance.relocalised(position, result)
         self.recent.add(position, reg.view, pose)
         log.info("frame %d relocalised against frame %d: %.2f mm from the last pose", position, cand.position, moved)
         result.time("relocalise", t0)

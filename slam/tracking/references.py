@@ -202,9 +202,17 @@ class StillCameraKeyframes(PreviousFrame):
         self.keyframe = None
 
 
+# the model view's coverage of what the last frame saw from which it is the reference of a frame
+# whose chain holds a relocalisation the map has not confirmed: only the map can confirm or
+# correct such a pose, and a pose a few mm off sees the map shifted out of part of the view
+UNCONFIRMED_MIN_COVERAGE = 0.5
+
+
 class ModelViewReference(PreviousFrame):
     """The model view rendered at the last pose (frame2model), where it covers at least
-    ``min_coverage`` of what the last frame saw; else the previous frame for that step.
+    ``min_coverage`` of what the last frame saw (``UNCONFIRMED_MIN_COVERAGE`` where the chain holds a
+    relocalisation the map never checked: it needs the map's word); else the previous frame for that
+    step.
 
     Args:
         depth_filter: for the steps against the previous frame.
@@ -215,6 +223,8 @@ class ModelViewReference(PreviousFrame):
             model at a position holds (None: all).
         refine_passes: ``tracking.refine_passes``.
         min_coverage: ``slam.config.MIN_MODEL_COVERAGE``.
+        chain_checked: ``chain_checked()``: whether the chain since the last pose the map confirmed
+            holds no relocalisation (the acceptance policy's).
 
     Attributes:
         fallbacks: steps tracked against the previous frame for lack of coverage.
@@ -223,8 +233,9 @@ class ModelViewReference(PreviousFrame):
     flows_to_previous_frame = False      # (against the model's colour)
 
     def __init__(self, depth_filter, render: Callable, odometry: StereoOdometry, active_from: Callable,
-                 refine_passes: int, min_coverage: float):
+                 refine_passes: int, min_coverage: float, chain_checked: Callable[[], bool] = lambda: True):
         super().__init__(depth_filter)
+        self.chain_checked = chain_checked
         self.render = render
         self.odometry = odometry
         self.active_from = active_from
@@ -238,7 +249,7 @@ class ModelViewReference(PreviousFrame):
         mv = self.render(state.pose, False, seen_from)    # depth first: the colour's pass only for a view used
         coverage = model_coverage(mv.valid, state.last_view.valid[0, 0])
         result.health["model_coverage"] = coverage
-        if coverage < self.min_coverage:
+        if coverage < (self.min_coverage if self.chain_checked() else UNCONFIRMED_MIN_COVERAGE):
             result.time("render", t0)
             self.fallbacks += 1
             log.info("the model view covers %.0f%% of what the last frame saw: tracking against the previous frame",

@@ -15,6 +15,11 @@ from slam.tracking.loop_closure import LoopEvent
 from vo.odometry import TrackResult, View
 
 
+#: what a pose rests on (:attr:`FrameResult.trust`), the trusted ones first
+TRUST = ("confirmed", "tracked", "known", "unconfirmed", "flagged", "failed")
+TRUSTED = ("confirmed", "tracked", "known")
+
+
 @dataclass
 class TrackState:
     """The last tracked frame: its pose, view and sequence position, and the motion that led to
@@ -60,6 +65,22 @@ class FrameResult:
             the fusions that finished while it was tracked).
         other_estimates: ``(4, 4)`` estimates of the frame's motion from the last frame (mm) that
             were not reported (the cross-check's other one): starts for a recovery.
+        trust: what the pose rests on (:data:`TRUST`): ``confirmed`` (frame2model: registered against
+            the map in agreement with the chain of poses before it), ``tracked`` (tracked against a
+            camera frame where no map confirms: frame2frame), ``known`` (mapped at a known pose,
+            ``analysis.poses: groundtruth``), ``unconfirmed`` (frame2model: carried
+            along the chain since a frame the map did not confirm, reported flagged), ``flagged``
+            or ``failed``.
+        anchors_map: the frame is fused although it is not trusted: the map is rebuilt or
+            re-anchored from it (``reason`` says which).
+        agrees_with_map: registered against the map in agreement with the chain (fused), even
+            where the map's own anchor makes the pose uncertain in the world (then flagged).
+        snapped_to_map: the model view's estimate was kept where it refuted a chain the map had
+            not confirmed (inconsistent beyond the cross-check's bound; flagged: the track jumped
+            back onto the map, which is not a lost match to relocalise).
+        map_correction: ``(4, 4)`` where the map ended an unconfirmed stretch at this frame (it
+            confirmed the chain, or snapped it back): its pose against the chain's, ``T_map
+            T_chain^-1`` (world frame, mm; :mod:`slam.tracking.chain_repair`); else None.
     """
 
     pose: np.ndarray
@@ -77,6 +98,22 @@ class FrameResult:
     view: Optional[View] = None
     thread_cpu: dict = field(default_factory=dict)
     other_estimates: list = field(default_factory=list)
+    trust: str = ""
+    anchors_map: bool = False
+    agrees_with_map: bool = False
+    snapped_to_map: bool = False
+    map_correction: Optional[np.ndarray] = None
+
+    @property
+    def trusted(self) -> bool:
+        """A pose a user may take as it is (confirmed or tracked, not flagged)."""
+        return self.trust in TRUSTED
+
+    @property
+    def fuses(self) -> bool:
+        """Whether the frame is fused into the map: a trusted pose, one that agrees with the map,
+        or one the map is rebuilt or re-anchored from."""
+        return self.trusted or self.agrees_with_map or self.anchors_map
 
     def time(self, stage: str, since: float) -> None:
         """Record ``stage`` as the time elapsed since ``since`` (``time.perf_counter()``)."""

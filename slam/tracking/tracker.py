@@ -4,8 +4,10 @@
 first frame; relocalise after frames that could not be read; estimate it against the last frame
 where the cross-check wants an independent estimate (this needs no map: it runs while the mapping
 thread fuses the last frame); take the map as of the last frame; choose the reference; predict the
-solver's start; register the frame; accept it (or fail it); hand it to the mapping stage unless
-flagged; advance; add it to the graph. What varies between runs are objects chosen once, in the
+solver's start; register the frame; accept it (or fail it); recover it where tracking lost it;
+settle its trust along the chain (confirmed by the map, tracked, unconfirmed or flagged; the map
+rebuilt or re-anchored where that lasts); hand it to the mapping stage where it is trusted (or
+re-anchors the map); advance; add it to the graph. What varies between runs are objects chosen once, in the
 constructor:
 
 - the reference policy (:mod:`slam.tracking.references`): previous frame, still-camera keyframes,
@@ -32,6 +34,7 @@ import torch
 
 from slam.config import SlamConfig
 from slam.tracking.acceptance import CrossCheckAcceptance, PlainAcceptance
+from slam.tracking.chain_repair import ChainRepair
 from slam.tracking.cross_check import CrossCheck
 from slam.tracking.graph import LoopClosureGraph, NoGraph
 from slam.tracking.health import HealthMonitor
@@ -119,9 +122,19 @@ class SequenceMapping:
         """The loop closure's graph and its events (None without ``graph.loop_closure``)."""
         return self.graph.loops
 
-    def optimised_poses(self, positions: range) -> Optional[np.ndarray]:
-        """``(N, 4, 4)`` rectified ``T_wc`` after the graph's optimisations (None without a graph)."""
-        return self.graph.optimised_poses(positions)
+    @property
+    def repaired_frames(self) -> int:
+        """Frames of unconfirmed stretches whose poses the map corrected (:mod:`slam.tracking.chain_repair`)."""
+        return len(self.repair.corrections)
+
+    def optimised_poses(self, tracked: np.ndarray) -> Optional[np.ndarray]:
+        """``(N, 4, 4)`` rectified ``T_wc`` of the ``tracked`` ones (every processed frame's, as
+        tracked) after the repairs of unconfirmed stretches and the graph's optimisations (None
+        where neither changed a pose)."""
+        optimised = self.graph.optimised_poses(range(len(tracked)))
+        if optimised is not None:
+            return optimised
+        return self.repair.corrected(tracked)
 
 
 class Tracker(SequenceMapping):
@@ -147,13 +160,15 @@ class Tracker(SequenceMapping):
         self.references = self._reference_policy(frame2model)
         self.acceptance = self._acceptance_policy(frame2model)
         self.start = LastMotionStart() if config.solver.init == "constant_velocity" else IdentityStart()
+        self.repair = ChainRepair()
 
     def _reference_policy(self, frame2model: bool):
         cfg = self.config
         depth_filter = DepthFilter(cfg.depth.temporal_still_mm) if self.odometry.filters_depth() else NoDepthFilter()
         if frame2model:
             return ModelViewReference(depth_filter, self._render, self.odometry, self.recovery.active_from,
-                                      cfg.tracking.refine_passes, cfg.tracking.min_model_coverage)
+                                      cfg.tracking.refine_passes, cfg.tracking.min_model_coverage,
+                                      lambda: self.acceptance.chain_checked)
         if cfg.tracking.keyframe_gap > 1:
             return StillCameraKeyframes(depth_filter, cfg.tracking.keyframe_gap, cfg.tracking.keyframe_still_mm)
         return PreviousFrame(depth_filter)
@@ -164,7 +179,7 @@ class Tracker(SequenceMapping):
         if not (frame2model and hc.cross_check > 0):
             return PlainAcceptance(health, hc.flag_mm)
         return CrossCheckAcceptance(health, hc.flag_mm, CrossCheck(hc.cross_check, hc.flag_mm), self.odometry,
-                                    hc.covariance_scale_frame, self._forget_view)
+                                    hc.covariance_scale_frame, self._forget_view, self.recovery.set_aside)
 
     # ------------------------------------------------------------------ what the run reports
     @property
@@ -176,6 +191,11 @@ class Tracker(SequenceMapping):
     def rebuilds(self) -> int:
         """Times the model around the view was rebuilt (the cross-check)."""
         return self.acceptance.rebuilds
+
+    @property
+    def reanchors(self) -> int:
+        """Times the map re-anchored after an unconfirmed stretch (the cross-check)."""
+        return self.acceptance.reanchors
 
     def flows_against_previous_frame(self) -> bool:
         """Whether each frame's temporal flow goes against the frame before it (frame2frame; the
@@ -193,8 +213,7 @@ class Tracker(SequenceMapping):
             return self.first_frame(position, view)
         result = FrameResult(state.pose)
         if self.recovery.relocalised_after_gap(self, position, view, result):
-            self.hand_over(result)
-            return result
+            return self.finish_early(position, result)
         estimate = self.acceptance.independent_estimate(view, self.start(state), ahead, result, state)
         self.mapping.settle()
         ref = self.references.choose(state, result)
@@ -204,15 +223,14 @@ class Tracker(SequenceMapping):
         if not self.acceptance.accept(track.view, ref, track, estimate, result, state):
             self.references.forget_keyframe()
             self.recovery.after_failure(self, position, view, result)
-            self.hand_over(result)
-            return result
+            return self.finish_early(position, result)
         pose = result.pose
         state.velocity = relative(state.pose, pose)
-        self.acceptance.after_flags(pose, result, state)
         if self.recovery.recovered(self, position, view, result):
-            self.hand_over(result)
-            return result
-        if not result.flagged:
+            return self.finish_early(position, result)
+        self.acceptance.after_flags(position, pose, result, state)
+        self.repair_stretch(position, pose, result)
+        if result.fuses:
             self.mapping.fuse(track.view, result.track.w3d, pose, position, self.recovery.active_from(position))
         self.advance(position, track.view, pose, result)
         self.recovery.remember(position, track.view, pose, result)
@@ -223,6 +241,7 @@ class Tracker(SequenceMapping):
     def first_frame(self, position: int, view: View) -> FrameResult:
         """The first frame: fused at the initial pose; the graph starts at it."""
         result = FrameResult(self.state.pose, reference="first")
+        self.acceptance.first(result)
         self.mapping.fuse(view, None, self.state.pose, position, self.recovery.active_from(position))
         self.advance(position, view, self.state.pose, result)
         self.recovery.remember(position, view, self.state.pose, result)
@@ -238,6 +257,18 @@ class Tracker(SequenceMapping):
         result.timings += list(track.timings_ms.items())
         result.track, result.view = track, track.view
         return track
+
+    def finish_early(self, position: int, result: FrameResult) -> FrameResult:
+        """A frame relocalised (or failed): its pose is not fused; the stretch follows it."""
+        self.repair_stretch(position, result.pose, result)
+        self.hand_over(result)
+        return result
+
+    def repair_stretch(self, position: int, pose: np.ndarray, result: FrameResult) -> None:
+        """Follow the chain's stretch the map has not confirmed; where the map ends it, correct its
+        poses (:mod:`slam.tracking.chain_repair`), in the graph's frames too."""
+        for k in self.repair.follow(position, pose, result):
+            self.graph.correct(k, self.repair.corrections[k])
 
     def advance(self, position: int, view: View, pose: np.ndarray, result: FrameResult) -> None:
         """Make a tracked frame the last good one (and, by the reference policy, the keyframe)."""
@@ -264,7 +295,7 @@ class KnownPoseMapper(SequenceMapping):
     Args: as :class:`Tracker`, and ``poses``: ``(N, 4, 4)`` the frames' rectified ``T_wc`` (mm).
     """
 
-    fallbacks = rebuilds = 0
+    fallbacks = rebuilds = reanchors = 0
 
     def __init__(self, config: SlamConfig, camera: StereoCamera, initial_pose: np.ndarray, poses: np.ndarray):
         self.config = config
@@ -274,6 +305,7 @@ class KnownPoseMapper(SequenceMapping):
         self.mapping = make_mapping(fusion)
         self.learned = isinstance(fusion.weight, LearnedWeight)
         self.state = TrackState(np.asarray(initial_pose, dtype=np.float64))
+        self.repair = ChainRepair()     # (nothing to repair: the poses are known)
 
     def flows_against_previous_frame(self) -> bool:
         """Whether the frames are matched to the previous one (for the learned w3D)."""
@@ -282,7 +314,7 @@ class KnownPoseMapper(SequenceMapping):
     def track(self, position: int, view: View, ahead: Optional[AheadFlow] = None) -> FrameResult:
         """Fuse ``view`` at its known pose."""
         pose = self.poses[position]
-        result = FrameResult(pose, reference="groundtruth")
+        result = FrameResult(pose, reference="groundtruth", trust="known")
         w3d = None
         last = self.state.last_view
         if last is not None and self.learned:
