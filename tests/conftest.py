@@ -25,3 +25,18 @@ def synth_dir(tmp_path_factory):
         return cache[key]
 
     return make
+
+
+def copy_with(src_root: Path, dst_root: Path, frames, write) -> Path:
+    """A copy of the synthetic sequence ``src_root`` in ``dst_root`` whose images of ``frames``
+    (both sides) are written by ``write(path)``; every other file a link to the original."""
+    dst_root.mkdir()
+    for src in src_root.rglob("*"):
+        dst = dst_root / src.relative_to(src_root)
+        if src.is_dir():
+            dst.mkdir(exist_ok=True)
+        elif src.parent.name == "video_frames" and int(src.name[:6]) in frames:
+            write(dst)
+        else:
+            dst.symlink_to(src)
+    return dst_root

@@ -13,6 +13,7 @@ from slam.config import load_config
 from slam.io.datasets import open_dataset
 from slam.io.tum import read_tum
 from slam.tracking.acceptance import REANCHOR_AFTER
+from tests.conftest import copy_with
 from vo.correspondence.dis import DisFlow
 from vo.geometry import backproject, motion_field, project
 
@@ -31,20 +32,6 @@ def _run(data, out, mode):
     return Pipeline(cfg, open_dataset(data, cfg.data), out).run(progress=False)
 
 
-def _copy_with(src_root, dst_root, frames, write) -> None:
-    """A copy of the sequence ``src_root`` in ``dst_root`` whose images of ``frames`` (both sides)
-    are written by ``write(path)``; every other file a link to the original."""
-    dst_root.mkdir()
-    for src in src_root.rglob("*"):
-        dst = dst_root / src.relative_to(src_root)
-        if src.is_dir():
-            dst.mkdir(exist_ok=True)
-        elif src.parent.name == "video_frames" and int(src.name[:6]) in frames:
-            write(dst)
-        else:
-            dst.symlink_to(src)
-
-
 def _motion_error(poses: np.ndarray, gt: np.ndarray, a: int, b: int) -> float:
     """Translation error (mm) of the estimated motion a -> b against the true one."""
     est = np.linalg.inv(poses[a]) @ poses[b]
@@ -55,7 +42,7 @@ def _motion_error(poses: np.ndarray, gt: np.ndarray, a: int, b: int) -> float:
 @pytest.mark.parametrize("mode", ["frame2frame", "frame2model"])
 def test_the_frame_after_unreadable_frames_is_relocalised_and_the_track_goes_on(scanning, tmp_path, mode):
     data = tmp_path / "gap"
-    _copy_with(scanning, data, GAP, lambda path: path.write_bytes(b"lost"))
+    copy_with(scanning, data, GAP, lambda path: path.write_bytes(b"lost"))
     result = _run(data, tmp_path / "run", mode)
     m = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert m["failed_frames"] == list(GAP)
@@ -86,7 +73,7 @@ def test_a_frame_that_cannot_be_relocalised_stays_failed_and_says_why(scanning, 
     import cv2
 
     data = tmp_path / "dark"
-    _copy_with(scanning, data, range(30, 33), lambda path: cv2.imwrite(str(path), np.zeros((256, 320, 3), np.uint8)))
+    copy_with(scanning, data, range(30, 33), lambda path: cv2.imwrite(str(path), np.zeros((256, 320, 3), np.uint8)))
     result = _run(data, tmp_path / "run", "frame2frame")
     for k in range(30, 33):
         assert result.records[k].failed and "not relocalised" in result.records[k].reason
@@ -139,7 +126,6 @@ def test_at_a_frame_rate_beyond_the_flows_reach_every_bad_frame_is_flagged_and_t
     the trajectory (ATE under 1 mm; 0.61 measured, 4.68 without the recovery)."""
     from benchmarks.benchmark_frame_rate import frame_errors
     from slam.synth import generate
-    from slam.tracking.acceptance import REANCHOR_AFTER
 
     data = generate(tmp_path / "fast", "scanning", frames=161, size=(320, 256), seed=5)
     cfg = load_config(None, ["tracking.mode=frame2frame", "threads=1"])
@@ -168,11 +154,10 @@ def test_after_a_gap_that_cannot_be_recovered_the_map_before_it_is_set_aside(tmp
     new map)."""
     from benchmarks.benchmark_frame_rate import frame_errors
     from slam.synth import generate
-    from slam.tracking.acceptance import REANCHOR_AFTER
 
     scan = generate(tmp_path / "fast", "scanning", frames=120, size=(320, 256), seed=5)
     data = tmp_path / "gap"
-    _copy_with(scan, data, range(40, 70), lambda path: path.write_bytes(b"lost"))
+    copy_with(scan, data, range(40, 70), lambda path: path.write_bytes(b"lost"))
     cfg = load_config(None, ["tracking.mode=frame2model", "threads=1"])
     pipe = Pipeline(cfg, open_dataset(data, cfg.data), tmp_path / "run")
     records = pipe.run(progress=False).records

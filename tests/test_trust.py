@@ -16,6 +16,7 @@ from slam.config import load_config
 from slam.evaluation.chain import chain_errors, silent_summary
 from slam.io.datasets import open_dataset
 from slam.tracking.state import TRUST
+from tests.conftest import copy_with
 
 GAP = range(40, 45)          # five unreadable frames: the frame after them is relocalised before it is tracked
 WRONG_MM = 4.0
@@ -26,19 +27,6 @@ def scanning(tmp_path_factory):
     from slam.synth import generate
 
     return generate(tmp_path_factory.mktemp("trust") / "scan", "scanning", frames=90, size=(320, 256), seed=5)
-
-
-def _with_gap(src_root, dst_root):
-    dst_root.mkdir()
-    for src in src_root.rglob("*"):
-        dst = dst_root / src.relative_to(src_root)
-        if src.is_dir():
-            dst.mkdir(exist_ok=True)
-        elif src.parent.name == "video_frames" and int(src.name[:6]) in GAP:
-            dst.write_bytes(b"lost")
-        else:
-            dst.symlink_to(src)
-    return dst_root
 
 
 def _wrong_registration(monkeypatch):
@@ -80,7 +68,8 @@ def test_a_wrong_relocalisation_its_inherited_poses_and_the_snap_back_are_flagge
     tracked against the previous frame or kept the last frame's estimate, and a rebuild of the map
     around the view made the wrong pose the map's: frames 4 mm off, unflagged, to the end."""
     _wrong_registration(monkeypatch)
-    pipe, result, records, poses, failed, flagged = _run(_with_gap(scanning, tmp_path / "gap"), tmp_path / "run")
+    data = copy_with(scanning, tmp_path / "gap", GAP, lambda path: path.write_bytes(b"lost"))
+    pipe, result, records, poses, failed, flagged = _run(data, tmp_path / "run")
     truth = pipe.dataset.gt_poses
     after = GAP.stop
     assert records[after].reference == "relocalised" and records[after].flagged
