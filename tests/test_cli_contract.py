@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from slam.app.cli import main
+from slam.io.calibration import read_stereomis_ini
 from slam.io.tum import read_tum, write_tum
 
 FRAMES = 10
@@ -54,6 +55,28 @@ def _short_groundtruth(data: Path) -> None:
     write_tum(data / "groundtruth.txt", stamps[:5], poses[:5])
 
 
+def _as_plain(data: Path, left: str = "{:04d}", right: str = "{:04d}", first: int = 5) -> None:
+    """The copy as a plain folder: ``left/`` and ``right/`` named ``left.format(number)``,
+    ``right.format(number)`` from ``first`` on (5 .. 14: as text, 10 sorts before 5), beside a
+    ``calibration.yaml`` of the rectified rig."""
+    calib = read_stereomis_ini(data / "StereoCalibration.ini")
+    for side, folder, name in (("l", "left", left), ("r", "right", right)):
+        (data / folder).mkdir()
+        for k in range(FRAMES):
+            (data / "video_frames" / f"{k:06d}{side}.png").rename(data / folder / f"{name.format(k + first)}.png")
+    shutil.rmtree(data / "video_frames")
+    (data / "StereoCalibration.ini").unlink()
+    K = calib.K1
+    (data / "calibration.yaml").write_text(f"fx: {K[0, 0]}\nfy: {K[1, 1]}\ncx: {K[0, 2]}\ncy: {K[1, 2]}\n"
+                                           f"baseline_mm: {calib.baseline_mm}\nwidth: 160\nheight: 128\n")
+
+
+def _plain_with_a_gap(data: Path) -> None:
+    """Unpadded right names, one of them one number off: no pairing by name, none by order."""
+    _as_plain(data, right="{}")
+    (data / "right" / "14.png").rename(data / "right" / "15.png")
+
+
 BROKEN = {
     # name: (break the copy, extra arguments, exit code, word in the one error line or None)
     "missing folder": (lambda d: shutil.rmtree(d), [], 2, "no such folder"),
@@ -71,6 +94,11 @@ BROKEN = {
     "one truncated frame": (_truncated_png, [], 0, None),
     "ground truth for half the frames": (_short_groundtruth, [], 0, None),
     "two thirds unreadable": (lambda d: _unreadable(d, 3), [], 3, None),
+    # issue 62: what people's folders look like
+    "plain, unpadded names": (lambda d: _as_plain(d, "{}", "{}"), [], 0, None),
+    "plain, unpadded names in right/ only": (lambda d: _as_plain(d, right="{}"), [], 0, None),
+    "plain, names that do not pair": (_plain_with_a_gap, [], 2, "right: the frames do not pair: 1 left frames "
+                                                               "without a right one (first 0014.png)"),
     "all but the first unreadable": (lambda d: _unreadable(d, FRAMES), [], 3, None),
 }
 

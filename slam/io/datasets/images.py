@@ -50,23 +50,42 @@ def pairing_stem(path: Path) -> str:
     return "".join(parts).lower()
 
 
+def numbered_stem(path: Path) -> str:
+    """:func:`pairing_stem` with every number written without leading zeros (``frame_0007`` and
+    ``frame_7`` -> ``frame_7``): frames numbered with and without padding pair by their number."""
+    return _NUMBER.sub(lambda m: str(int(m.group(1))), pairing_stem(path))
+
+
+def _paired_by(key, left: list[Path], right: list[Path]) -> Optional[list[tuple[Path, Path]]]:
+    """``left`` and ``right`` paired by ``key(file)`` when every file of both has exactly one
+    partner, else None."""
+    left_keys = [key(p) for p in left]
+    by_key = {key(p): p for p in right}
+    if len(left) == len(right) == len(by_key) == len(set(left_keys)) and all(k in by_key for k in left_keys):
+        return [(p, by_key[k]) for p, k in zip(left, left_keys)]
+    return None
+
+
 def pair_files(left: list[Path], right: list[Path], left_dir: Path, right_dir: Path) -> list[tuple[Path, Path]]:
-    """Left and right files paired by their stems with the side token stripped, or by their order
-    when no stem pairs and the counts agree. DataError naming both folders otherwise."""
+    """Left and right files paired by their stems with the side token stripped, else by those
+    stems' numbers (``0007.png`` / ``7.png``), else by their natural order when no name pairs and
+    the counts agree. DataError naming both folders otherwise."""
     if not left:
         raise DataError(f"{left_dir}: no images ({', '.join(IMAGE_SUFFIXES)})")
-    by_stem = {pairing_stem(p): p for p in right}
-    stems = [pairing_stem(p) for p in left]
+    for key in (pairing_stem, numbered_stem):
+        pairs = _paired_by(key, left, right)
+        if pairs is not None:
+            return pairs
+    by_stem = {numbered_stem(p): p for p in right}
+    stems = [numbered_stem(p) for p in left]
     matched = [s for s in stems if s in by_stem]
-    if len(matched) == len(left) == len(right) and len(set(stems)) == len(stems):
-        return [(p, by_stem[s]) for p, s in zip(left, stems)]
     if not matched and len(left) == len(right):
         return list(zip(left, right))
     if matched:
         missing = [p.name for p, s in zip(left, stems) if s not in by_stem]
         extra = sorted(set(by_stem) - set(stems))
         detail = f"{len(missing)} left frames without a right one (first {missing[0]})" if missing else \
-            f"{len(extra)} right frames without a left one"
+            f"{len(extra)} right frames without a left one" if extra else "their names repeat a frame number"
         raise DataError(f"{left_dir} and {right_dir}: the frames do not pair: {detail}")
     raise DataError(f"{left_dir} has {len(left)} images but {right_dir} has {len(right)}, and their names "
                     "do not pair")
