@@ -8,6 +8,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from slam.app.cli import main
@@ -128,6 +129,113 @@ def test_broken_inputs(sequence, tmp_path, capsys, name):
         assert "ate_rmse_mm" not in metrics and "ate_rmse_mm" in metrics["not_trusted"]
     else:
         assert metrics["status"] == "ok" and metrics["ate_rmse_mm"] < 1.0
+
+
+# ------------------------------------------------------------------------------------------------
+# a da Vinci rig: an OpenCV XML calibration (M_l M_r D_l D_r R T) made for 1920x1080 images, frames
+# cropped to 1280x960 (here a fifth of both: 384x216 calibrated, 256x192 cropped at (128, 24))
+CALIBRATED, CROP, OFFSET = (384, 216), (256, 192), (128, 24)
+
+
+@pytest.fixture(scope="module")
+def davinci(tmp_path_factory) -> tuple[Path, "RawStereoCalibration"]:
+    """``left/`` and ``right/`` cropped from a raw synthetic rig (distorted, the right camera
+    rotated by 1.7 degrees) rendered at :data:`CALIBRATED`, its ground truth, and its calibration."""
+    import cv2
+
+    from slam.synth import generate
+
+    root = tmp_path_factory.mktemp("davinci")
+    raw = generate(root / "raw", "rigid", frames=FRAMES, size=CALIBRATED, seed=0, raw=True, codec="ffv1")
+    seq = root / "seq"
+    (x0, y0), (w, h) = OFFSET, CROP
+    video = cv2.VideoCapture(str(next(raw.glob("*.avi"))))
+    for k in range(FRAMES):
+        ok, both = video.read()
+        assert ok
+        for side, view in (("left", both[:CALIBRATED[1]]), ("right", both[CALIBRATED[1]:])):
+            (seq / side).mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(seq / side / f"{k:04d}.png"), view[y0:y0 + h, x0:x0 + w])
+    video.release()
+    shutil.copy(raw / "groundtruth.txt", seq / "groundtruth.txt")
+    return seq, read_stereomis_ini(raw / "StereoCalibration.ini")
+
+
+def davinci_xml(path: Path, calib, size=None, moved=(0.0, 0.0), R=None) -> Path:
+    """``calib`` as the da Vinci's OpenCV XML: ``M_l M_r D_l D_r R T``, its principal points moved
+    by ``-moved`` (px), ``width``/``height`` when ``size`` is given."""
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for name, K in (("M_l", calib.K1), ("M_r", calib.K2)):
+        K = K.copy()
+        K[:2, 2] -= moved
+        fs.write(name, K)
+    fs.write("D_l", calib.D1[None, :5])
+    fs.write("D_r", calib.D2[None, :5])
+    fs.write("R", calib.R if R is None else R)
+    fs.write("T", calib.T.reshape(3, 1))
+    if size is not None:
+        fs.write("width", size[0])
+        fs.write("height", size[1])
+    fs.release()
+    return path
+
+
+def _not_orthonormal(calib, deviation: float):
+    """``calib.R`` scaled so that ``max |R R^T - I|`` is ``deviation``."""
+    return calib.R * np.sqrt(1.0 + deviation)
+
+
+DAVINCI = {
+    # name: (the XML's arguments, exit code, the one line's end or what the run reports)
+    "calibrated size": (dict(size=CALIBRATED), 2,
+                        "calibration for 384x216 images does not fit frames of 256x192 (neither equal nor an integer "
+                        "multiple or fraction of them; frames cropped from the calibrated images need the calibration "
+                        "of the crop: the crop's size, and each principal point less the crop's offset)"),
+    "no size": (dict(), 2, "its principal point (191, 106) fits no calibration size for frames of 256x192"),
+    "labelled with the crop's size": (dict(size=CROP), 2,
+                                      "the first frame's views keep a vertical disparity of 1.4 px after "
+                                      "rectification (median over 127 matches; a calibration of these frames leaves "
+                                      "at most 1 px): the calibration does not fit them"),
+    "principal point outside": (dict(size=CROP, moved=(-200.0, 0.0)), 2,
+                                "the left principal point (389.9, 106.4) lies outside the 256x192 frames"),
+    "R far from orthonormal": (dict(size=CROP, moved=OFFSET, R=0.05), 2,
+                               "stereo rotation R is not a rotation matrix (max |R R^T - I| = 0.05, det 1.08; up "
+                               "to 0.02 is taken for a rotation written with few digits)"),
+    "the crop's calibration": (dict(size=CROP, moved=OFFSET), 0, None),
+    "R 1.9e-3 from orthonormal": (dict(size=CROP, moved=OFFSET, R=1.9e-3), 0,
+                                  "stereo rotation R is 1.9e-03 from orthonormal (max |R R^T - I|): taken as the "
+                                  "nearest rotation"),
+}
+
+
+@pytest.mark.parametrize("name", list(DAVINCI))
+def test_a_davinci_calibration_of_cropped_frames(davinci, tmp_path, capsys, name):
+    """``--calibration`` beside ``left/ right/`` is the frames' calibration (frame folders), its
+    OpenCV names read; a calibration that does not fit the crop is one line (its size, its principal
+    point, the rectified views' vertical disparity, its rotation), never a run of flagged frames;
+    the crop's calibration runs, a rotation written with few digits with a warning."""
+    seq, calib = davinci
+    kwargs, code, line = DAVINCI[name]
+    kwargs = dict(kwargs)
+    if "R" in kwargs:
+        kwargs["R"] = _not_orthonormal(calib, kwargs["R"])
+    xml = davinci_xml(tmp_path / "davinci.xml", calib, **kwargs)
+    out = tmp_path / "out"
+    assert main(["run", str(seq), "--calibration", str(xml), "--weights", "constant", "--out", str(out),
+                 "--quiet"]) == code
+    err = capsys.readouterr().err
+    if code == 2:
+        assert err == f"slam run: error: {xml}: {line}\n" or (err.startswith(f"slam run: error: {xml}: {line}")
+                                                              and err.count("\n") == 1), err
+        assert not out.exists()
+        return
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "ok" and metrics["ate_rmse_mm"] < 0.5 and not metrics["flagged_frames"]
+    assert rows(out / "trajectory.txt") == FRAMES
+    warnings = [w for w in err.splitlines() if w]
+    assert warnings == ([] if line is None else [f"WARNING slam: {xml}: {line}"])
 
 
 def test_ground_truth_shorter_than_the_frames(sequence, tmp_path, capsys):

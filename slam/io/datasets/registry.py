@@ -10,8 +10,13 @@ Detection (first match wins; ``config.layout`` other than ``auto`` skips it):
 5. a ``*.mp4`` with ``StereoCalibration.ini`` (or no other calibration candidate) -> ``stereomis_raw``
 6. one video file (or a video file given as DATA)      -> ``video``
 
+``left/`` and ``right/`` given a calibration (``data.calibration``, ``--calibration``) are frame
+folders (4.) with that calibration, not a plain folder.
+
 A detected layout with missing pieces (e.g. no calibration) fails in its reader with a DataError
-naming the missing file.
+naming the missing file. Frame folders and video files, whose calibration comes from elsewhere, are
+checked on their first frame: a pair that keeps a vertical disparity as the pipeline gets it is a
+DataError naming the calibration (:func:`slam.io.stereo_check.check_rectified_rows`).
 """
 from __future__ import annotations
 
@@ -63,14 +68,44 @@ def detect_layout(path: str | Path) -> str:
     raise DataError(f"{path}: {what}; looked for {'; '.join(LOOKED_FOR)}")
 
 
-def open_dataset(path: str | Path, config: Optional[DataConfig] = None) -> StereoDataset:
-    """Open the sequence in ``path`` with the reader of ``config.layout`` (``auto``: detected)."""
+def open_dataset(path: str | Path, config: Optional[DataConfig] = None, check_rows: bool = True) -> StereoDataset:
+    """Open the sequence in ``path`` with the reader of ``config.layout`` (``auto``: detected).
+    ``check_rows``: refuse frame folders and video files whose first pair keeps a vertical
+    disparity (:func:`check_first_pair`; ``slam inspect`` reports it instead)."""
     config = config or DataConfig()
     path = Path(path)
     layout = detect_layout(path) if config.layout == "auto" else config.layout
+    if config.layout == "auto" and layout == "plain" and config.calibration:
+        layout = "frames"           # left/ and right/ with a calibration of their own
     if config.layout != "auto" and not path.is_dir() and not (layout == "video" and path.is_file()):
         raise DataError(f"{path}: no such folder" if not path.exists() else f"{path}: not a folder")
     if config.calibration and layout not in ("frames", "video"):
         raise ConfigError(f"{path}: --calibration / data.calibration applies to frame folders and video files; "
                           f"the {layout} layout reads its own calibration file")
-    return READERS[layout](path, config)
+    dataset = READERS[layout](path, config)
+    if check_rows and layout in ("frames", "video"):
+        check_first_pair(dataset)
+    return dataset
+
+
+def check_first_pair(dataset: StereoDataset) -> None:
+    """The first frame's views as the pipeline gets them must be row-aligned
+    (:func:`slam.io.stereo_check.check_rectified_rows`), except in ``rectify_mode: pseudo`` (which
+    keeps the parallax of the cameras' rotation by design). A first frame that cannot be read is
+    not checked (it fails when tracked); DataError naming the calibration otherwise."""
+    from slam.io.rectification import ResizeOnly
+    from slam.io.stereo_check import check_rectified_rows
+
+    rectified_here = not isinstance(dataset.processor, ResizeOnly)
+    if rectified_here and dataset.config.rectify_mode == "pseudo":
+        return
+    try:
+        frame = dataset.frame(0)
+    except DataError:
+        return
+    where = str(getattr(dataset, "calibration_path", None) or dataset.path)
+    try:
+        check_rectified_rows(frame.left, frame.right, where, rectified_here)
+    except DataError:
+        dataset.close()
+        raise

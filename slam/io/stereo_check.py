@@ -1,0 +1,75 @@
+"""Whether a stereo pair looks like one: sub-pixel matches between the views and the vertical
+disparity a rectified pair must not have.
+
+A rectified pair's matches lie on one row (vertical disparity 0) and the left view's features lie
+to the right of the right view's (positive disparity ``d``, depth ``fx * baseline / d``). A
+calibration of other images leaves a vertical disparity.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from slam.errors import DataError
+
+#: a rectified pair's matches lie on one row: below this median |dy| (pixels) the views are row-aligned
+ROW_ALIGNED_PX = 0.5
+#: above this median |dy| (pixels, at the frames' output size) a rectified pair is refused: the
+#: calibration does not describe these frames (made for other images, or a crop of them); a
+#: calibration of the frames gives 0.2-0.3 px on the synthetic raw rigs, a crop calibrated without
+#: moving its principal points 1.4 px at 256x192 (5 times that at 1280x960)
+MAX_VERTICAL_PX = 1.0
+#: fewer matches than this say nothing about a pair (textureless, dark, unreadable)
+MIN_MATCHES = 20
+
+
+@dataclass
+class Disparities:
+    """Stereo matches of one pair: how many, median |vertical disparity|, the share of negative
+    horizontal disparities and the median horizontal disparity (px)."""
+
+    matches: int
+    vertical_px: float
+    negative_share: float
+    median_px: float
+
+    def line(self) -> str:
+        if self.matches == 0:
+            return "no feature matches"
+        return (f"{self.matches} matches, median |dy| {self.vertical_px:.2f} px, median disparity "
+                f"{self.median_px:.1f} px, {100 * self.negative_share:.0f} % negative")
+
+
+def disparities(left: np.ndarray, right: np.ndarray, max_corners: int = 800) -> Disparities:
+    """Sub-pixel stereo matches between two ``(H, W, 3)`` uint8 RGB views: corners of the left view
+    (Shi-Tomasi) followed into the right one with pyramidal Lucas-Kanade and back; a match whose
+    round trip misses by over 0.5 px is dropped."""
+    gl, gr = (cv2.cvtColor(v, cv2.COLOR_RGB2GRAY) for v in (left, right))
+    corners = cv2.goodFeaturesToTrack(gl, max_corners, 0.01, 5)
+    if corners is None or len(corners) < 2:
+        return Disparities(0, float("nan"), float("nan"), float("nan"))
+    lk = dict(winSize=(21, 21), maxLevel=4, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.01))
+    ahead, ok1, _ = cv2.calcOpticalFlowPyrLK(gl, gr, corners, None, **lk)
+    back, ok2, _ = cv2.calcOpticalFlowPyrLK(gr, gl, ahead, None, **lk)
+    good = (ok1[:, 0] == 1) & (ok2[:, 0] == 1) & (np.linalg.norm((back - corners)[:, 0], axis=1) < 0.5)
+    if not good.any():
+        return Disparities(0, float("nan"), float("nan"), float("nan"))
+    pl, pr = corners[good, 0], ahead[good, 0]
+    dx, dy = pl[:, 0] - pr[:, 0], pl[:, 1] - pr[:, 1]
+    return Disparities(int(len(dx)), float(np.median(np.abs(dy))), float(np.mean(dx < 0)), float(np.median(dx)))
+
+
+def check_rectified_rows(left: np.ndarray, right: np.ndarray, where: str, rectified_here: bool) -> Disparities:
+    """The disparities of a pair as the pipeline gets it (``(H, W, 3)`` uint8 RGB, rectified or
+    taken as rectified); DataError naming ``where`` (the calibration) when its median vertical
+    disparity is above :data:`MAX_VERTICAL_PX` over at least :data:`MIN_MATCHES` matches."""
+    found = disparities(left, right)
+    if found.matches >= MIN_MATCHES and found.vertical_px > MAX_VERTICAL_PX:
+        how = "after rectification" if rectified_here else "taken as rectified"
+        raise DataError(f"{where}: the first frame's views keep a vertical disparity of {found.vertical_px:.1f} px "
+                        f"{how} (median over {found.matches} matches; a calibration of these frames leaves at "
+                        f"most {MAX_VERTICAL_PX:g} px): the calibration does not fit them (made for other images, "
+                        "or a crop of them without its principal points moved; slam inspect shows the pair)")
+    return found
