@@ -72,6 +72,23 @@ def _as_plain(data: Path, left: str = "{:04d}", right: str = "{:04d}", first: in
                                            f"baseline_mm: {calib.baseline_mm}\nwidth: 160\nheight: 128\n")
 
 
+def _rolled_right_views(data: Path, by: int = 5) -> None:
+    """A plain folder whose right view k is that of frame k + ``by``: every name pairs, no view."""
+    _as_plain(data)
+    right = sorted((data / "right").iterdir())
+    for path in right:
+        path.rename(path.with_suffix(".tmp"))
+    for k, path in enumerate(right):
+        right[(k + by) % len(right)].with_suffix(".tmp").rename(path)
+
+
+def _swapped_views(data: Path) -> None:
+    _as_plain(data)
+    (data / "left").rename(data / "was_left")
+    (data / "right").rename(data / "left")
+    (data / "was_left").rename(data / "right")
+
+
 def _plain_with_a_gap(data: Path) -> None:
     """Unpadded right names, one of them one number off: no pairing by name, none by order."""
     _as_plain(data, right="{}")
@@ -100,6 +117,11 @@ BROKEN = {
     "plain, unpadded names in right/ only": (lambda d: _as_plain(d, right="{}"), [], 0, None),
     "plain, names that do not pair": (_plain_with_a_gap, [], 2, "right: the frames do not pair: 1 left frames "
                                                                "without a right one (first 0014.png)"),
+    "mispaired views": (_rolled_right_views, [], 2, "calibration.yaml: the first frame's views keep a vertical "
+                                                    "disparity of 4.6 px taken as rectified (median over 73 matches"),
+    "left and right swapped": (_swapped_views, [], 2, "calibration.yaml: 100 % of the first frame's stereo matches "
+                                                      "have a negative disparity taken as rectified: the left and "
+                                                      "right views are swapped"),
     "all but the first unreadable": (lambda d: _unreadable(d, FRAMES), [], 3, None),
 }
 
@@ -113,7 +135,8 @@ def test_broken_inputs(sequence, tmp_path, capsys, name):
     breaks(data)
     out = tmp_path / "out"
     assert main(["run", str(data), "--weights", "constant", "--out", str(out), "--quiet", *extra]) == code
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
+    err = captured.err
     assert "Traceback" not in err and "UserWarning" not in err
     if code == 2:
         assert err.count("\n") == 1 and err.startswith("slam run: error: ") and word in err, err

@@ -1,9 +1,10 @@
-"""Whether a stereo pair looks like one: sub-pixel matches between the views and the vertical
-disparity a rectified pair must not have.
+"""Whether a stereo pair looks like one: sub-pixel matches between the views, the vertical
+disparity a rectified pair must not have and the sign its disparities must have.
 
 A rectified pair's matches lie on one row (vertical disparity 0) and the left view's features lie
 to the right of the right view's (positive disparity ``d``, depth ``fx * baseline / d``). A
-calibration of other images leaves a vertical disparity.
+calibration of other images, or views that are not a pair, leave a vertical disparity; left and
+right swapped give negative disparities.
 """
 from __future__ import annotations
 
@@ -61,15 +62,24 @@ def disparities(left: np.ndarray, right: np.ndarray, max_corners: int = 800) -> 
     return Disparities(int(len(dx)), float(np.median(np.abs(dy))), float(np.mean(dx < 0)), float(np.median(dx)))
 
 
-def check_rectified_rows(left: np.ndarray, right: np.ndarray, where: str, rectified_here: bool) -> Disparities:
+def check_rectified_rows(left: np.ndarray, right: np.ndarray, where: str, rectified_here: bool,
+                         frame: str = "the first frame") -> Disparities:
     """The disparities of a pair as the pipeline gets it (``(H, W, 3)`` uint8 RGB, rectified or
-    taken as rectified); DataError naming ``where`` (the calibration) when its median vertical
-    disparity is above :data:`MAX_VERTICAL_PX` over at least :data:`MIN_MATCHES` matches."""
+    taken as rectified); DataError naming ``where`` (the calibration) and ``frame`` when, over at
+    least :data:`MIN_MATCHES` matches, its median vertical disparity is above
+    :data:`MAX_VERTICAL_PX` (a calibration of other images, or views that are not a pair) or most
+    of its disparities are negative (left and right swapped)."""
     found = disparities(left, right)
-    if found.matches >= MIN_MATCHES and found.vertical_px > MAX_VERTICAL_PX:
-        how = "after rectification" if rectified_here else "taken as rectified"
-        raise DataError(f"{where}: the first frame's views keep a vertical disparity of {found.vertical_px:.1f} px "
-                        f"{how} (median over {found.matches} matches; a calibration of these frames leaves at "
-                        f"most {MAX_VERTICAL_PX:g} px): the calibration does not fit them (made for other images, "
-                        "or a crop of them without its principal points moved; slam inspect shows the pair)")
+    if found.matches < MIN_MATCHES:
+        return found
+    how = "after rectification" if rectified_here else "taken as rectified"
+    if found.vertical_px > MAX_VERTICAL_PX:
+        raise DataError(f"{where}: {frame}'s views keep a vertical disparity of {found.vertical_px:.1f} px {how} "
+                        f"(median over {found.matches} matches; a calibration of these frames leaves at most "
+                        f"{MAX_VERTICAL_PX:g} px): the calibration does not fit them (made for other images, or a crop "
+                        "of them without its principal points moved), or the views are not a pair; slam inspect "
+                        "shows them")
+    if found.negative_share > 0.5:
+        raise DataError(f"{where}: {100 * found.negative_share:.0f} % of {frame}'s stereo matches have a negative "
+                        f"disparity {how}: the left and right views are swapped (or T has the wrong sign)")
     return found

@@ -70,6 +70,7 @@ class PlainDataset(StereoDataset):
         stamps, poses = load_groundtruth(path / GT_FILE, n, None, config.fps)
         super().__init__(path, config, processor, n, stamps, poses)
         self._masks_dir = path / "masks"
+        self.calibration_path = calib_path
 
     def _read(self, index: int) -> RawFrame:
         left_path, right_path = self._left[index], self._right[index]
