@@ -8,6 +8,7 @@ import json
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -89,6 +90,17 @@ def _swapped_views(data: Path) -> None:
     (data / "was_left").rename(data / "right")
 
 
+def _baseline_in_metres(data: Path) -> None:
+    ini = data / "StereoCalibration.ini"
+    ini.write_text(ini.read_text().replace("T_0 = -4.5", "T_0 = -0.0045"))
+
+
+def _empty_masks(data: Path) -> None:
+    (data / "masks").mkdir()
+    for k in range(FRAMES):
+        cv2.imwrite(str(data / "masks" / f"{k:06d}l.png"), np.zeros((128, 160), np.uint8))
+
+
 def _plain_with_a_gap(data: Path) -> None:
     """Unpadded right names, one of them one number off: no pairing by name, none by order."""
     _as_plain(data, right="{}")
@@ -122,6 +134,12 @@ BROKEN = {
     "left and right swapped": (_swapped_views, [], 2, "calibration.yaml: 100 % of the first frame's stereo matches "
                                                       "have a negative disparity taken as rectified: the left and "
                                                       "right views are swapped"),
+    # ... and what they still cannot be told from before the frames fail: the likely cause, said once
+    "baseline in metres": (_baseline_in_metres, [], 3, "the stereo depth is 0.0752 mm (median), nearer than the 20 "
+                                                      "mm tracked: is the calibration's baseline (0.0045) in metres? "
+                                                      "calibrations are in mm"),
+    "all-zero masks": (_empty_masks, [], 3, "only 0.0 % of the frame's pixels are valid: are its masks empty "
+                                            "(non-zero = tissue), or the frame dark or saturated?"),
     "all but the first unreadable": (lambda d: _unreadable(d, FRAMES), [], 3, None),
 }
 
@@ -152,6 +170,9 @@ def test_broken_inputs(sequence, tmp_path, capsys, name):
         assert "ate_rmse_mm" not in metrics and "ate_rmse_mm" in metrics["not_trusted"]
     else:
         assert metrics["status"] == "ok" and metrics["ate_rmse_mm"] < 1.0
+    causes = [line for line in captured.out.splitlines() if line.startswith("likely cause: ")]
+    assert causes == ([] if word is None else [f"likely cause: {word}"])       # said once, where there is one
+    assert metrics.get("likely_cause") == word
 
 
 # ------------------------------------------------------------------------------------------------
@@ -385,8 +406,36 @@ def test_evaluate_exits_non_zero_when_a_run_is_not_a_result(sequence, tmp_path, 
 
 
 def test_failed_share_threshold():
-    from slam.app.pipeline import MAX_FAILED_SHARE, run_status
+    from slam.app.status import MAX_FAILED_SHARE, MAX_FLAGGED_SHARE, is_result, run_status
 
-    assert MAX_FAILED_SHARE == 0.5
+    assert MAX_FAILED_SHARE == 0.5 == MAX_FLAGGED_SHARE
     assert run_status(10, 5) == "ok" and run_status(10, 6) == "not a result: 6 of 10 frames failed"
     assert run_status(0, 0) == "ok"
+    assert run_status(10, 0, 5) == "ok" and run_status(10, 0, 6) == "untrusted: 6 of 10 frames flagged"
+    assert run_status(10, 6, 4) == "not a result: 6 of 10 frames failed"
+    assert is_result("ok") and is_result("untrusted: 6 of 10 frames flagged")
+    assert not is_result("not a result: 6 of 10 frames failed")
+
+
+def test_a_run_of_mostly_flagged_frames_is_untrusted(sequence, tmp_path, capsys):
+    """Over half the frames flagged (here by a ``health.flag_mm`` no pose's spread meets): the
+    status says so, the ATE stays, marked in the summary, ``slam compare`` names it in its table;
+    the exit code stays 0 (flagged frames are results)."""
+    out = tmp_path / "out"
+    tight = ["--set", "health.flag_mm=0.001"]
+    assert main(["run", str(sequence), "--weights", "constant", "--out", str(out), "--quiet", *tight]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    metrics = json.loads((out / "metrics.json").read_text())
+    flagged = len(metrics["flagged_frames"])
+    assert flagged > FRAMES / 2 and metrics["status"] == f"untrusted: {flagged} of {FRAMES} frames flagged"
+    assert metrics["ate_rmse_mm"] < 1.0 and "not_trusted" not in metrics and "likely_cause" not in metrics
+    assert f"untrusted: {flagged} of {FRAMES} frames flagged: their poses are reported, not trusted (tracking.csv " \
+           "says why)" in printed
+    assert [line.startswith(f"ATE-RMSE {metrics['ate_rmse_mm']:.3f} mm (untrusted) | ") for line in printed].count(True) == 1
+    cmp_ = tmp_path / "cmp"
+    assert main(["compare", str(sequence), "--weights", "constant", "--frames", "4", "--out", str(cmp_), "--quiet",
+                 *tight]) == 0
+    rows_ = json.loads((cmp_ / "comparison.json").read_text())
+    table = (cmp_ / "comparison.md").read_text()
+    for mode, m in rows_.items():
+        assert m["status"].startswith("untrusted: ") and f"| {mode} ({m['status']}) | 4 | {m['ate_rmse_mm']:.3f} |" in table

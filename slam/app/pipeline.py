@@ -26,6 +26,7 @@ from slam.app.interrupts import SignalGate, signal_of
 from slam.app.prefetch import Prefetcher
 from slam.app.progress import Progress
 from slam.app.run_folder import replaced_atomically, write_json_atomically
+from slam.app.status import is_result, run_status
 from slam.app.thread_use import ThreadBudget, ThreadClock, pool_sizes
 from slam.tracking.state import FrameResult
 from slam.tracking.tracker import KnownPoseMapper, Tracker
@@ -34,9 +35,6 @@ from slam.io.tum import TumStreamWriter
 from vo.odometry import AheadFlow, View
 
 log = logging.getLogger("slam")
-
-#: a finished run whose failed share is above this is not a result (``slam run`` exits 3)
-MAX_FAILED_SHARE = 0.5
 
 
 @dataclass
@@ -372,7 +370,7 @@ class Pipeline:
         records = result.records
         done = len(records)
         failed = sum(r.failed for r in records)
-        status = run_status(done, failed)
+        status = run_status(done, failed, sum(r.flagged for r in records))
         metrics: dict = {
             "data": str(self.dataset.path),
             "status": status,
@@ -402,11 +400,31 @@ class Pipeline:
         if self.tracker.loops is not None:
             metrics["loop_closure"] = self.tracker.loops.summary(done, float(np.sum(self.timings.get("loop", [0.0]))))
         accuracy = self._accuracy(records, estimate, online)
-        if status == "ok":
+        cause = self._likely_cause(records) if status != "ok" else ""
+        if cause:
+            metrics["likely_cause"] = cause
+        if is_result(status):
             metrics.update(accuracy)
         elif accuracy:
             metrics["not_trusted"] = accuracy
         return metrics
+
+    def _likely_cause(self, records: list) -> str:
+        """Why the frames failed (or were flagged), read off the first such frame that reads
+        (:func:`slam.io.stereo_check.likely_cause`); '' when its figures show nothing."""
+        from slam.io.stereo_check import likely_cause
+
+        bad = ([k for k, r in enumerate(records) if r.failed and not r.reason.startswith("unreadable")]
+               or [k for k, r in enumerate(records) if r.flagged])
+        try:
+            frame = self.dataset.frame(bad[0]) if bad else None
+        except DataError:
+            frame = None
+        if frame is None:
+            return ""
+        depth = self.config.depth
+        return likely_cause(frame.left, frame.right, frame.mask, self.camera.fx, self.camera.baseline_mm,
+                            (depth.min_depth_mm, depth.max_depth_mm))
 
     def _groundtruth_of(self, records: list) -> tuple[Optional[np.ndarray], np.ndarray]:
         """The ground truth of the processed frames ``(N, 4, 4)`` (None without) and the mask of
@@ -501,11 +519,3 @@ class Pipeline:
         path = getattr(self.logger, "path", None)      # (a logger that records to no file has none)
         if path is not None:
             result.files["recording"] = str(path)
-
-
-def run_status(frames: int, failed: int) -> str:
-    """``ok``, or ``not a result: N of M frames failed`` when more than :data:`MAX_FAILED_SHARE`
-    of the processed frames failed (their poses are carried over, not tracked)."""
-    if frames > 0 and failed > MAX_FAILED_SHARE * frames:
-        return f"not a result: {failed} of {frames} frames failed"
-    return "ok"

@@ -11,6 +11,7 @@ from typing import Callable, Iterator
 from slam.config import SlamConfig
 from slam.app.interrupts import exit_code
 from slam.app.pipeline import Pipeline, RunResult
+from slam.app.status import is_result
 from slam.app.run_folder import check_out_dir, clear_run_files
 
 log = logging.getLogger("slam")
@@ -18,7 +19,7 @@ log = logging.getLogger("slam")
 RUN_LOG = "run.log"
 #: the loggers whose records ``run.log`` keeps
 PROJECT_LOGGERS = ("slam", "vo", "mapping")
-#: the exit code of a finished run that is not a result (``slam.app.pipeline.MAX_FAILED_SHARE``)
+#: the exit code of a finished run that is not a result (``slam.app.status``)
 NOT_A_RESULT = 3
 
 
@@ -94,10 +95,11 @@ def run_log(path: Path) -> Iterator[None]:
 
 def exit_status(result: RunResult) -> int:
     """``slam run``'s exit code: 128 + the signal when it was stopped (130 Ctrl-C, 143
-    SIGTERM), 3 when it is not a result (too many frames failed), else 0."""
+    SIGTERM), 3 when it is not a result (too many frames failed), else 0 (an untrusted run too:
+    its flagged frames are results)."""
     if result.interrupted:
         return exit_code(result.signum or signal.SIGINT)
-    return 0 if result.metrics.get("status", "ok") == "ok" else NOT_A_RESULT
+    return 0 if is_result(result.metrics.get("status", "ok")) else NOT_A_RESULT
 
 
 def summary_text(result: RunResult) -> str:
@@ -107,13 +109,19 @@ def summary_text(result: RunResult) -> str:
              f"({m.get('mode')}), {len(m['failed_frames'])} failed, {len(m.get('flagged_frames', []))} flagged, "
              f"{m['fps']:.1f} fps (tracked frames)"]
     status = m.get("status", "ok")
-    if status != "ok":
+    if not is_result(status):
         lines.append(f"{status}: their poses are carried over, not tracked")
-    elif "ate_rmse_mm" in m:
+    elif status != "ok":
+        lines.append(f"{status}: their poses are reported, not trusted (tracking.csv says why)")
+    if m.get("likely_cause"):
+        lines.append(f"likely cause: {m['likely_cause']}")
+    if is_result(status) and "ate_rmse_mm" in m:
         over = (f" over {m['evaluated_frames']} frames with ground truth"
                 if m.get("evaluated_frames", done) != done else "")
-        lines.append(f"ATE-RMSE {m['ate_rmse_mm']:.3f} mm | RPE-trans {m['rpe_trans_mm']:.3f} ± {m['rpe_trans_std_mm']:.3f} mm"
-                     f" | RPE-rot {m['rpe_rot_deg']:.4f} ± {m['rpe_rot_std_deg']:.4f} deg{over}")
+        mark = "" if status == "ok" else f" ({status.split(':')[0]})"
+        lines.append(f"ATE-RMSE {m['ate_rmse_mm']:.3f} mm{mark} | RPE-trans {m['rpe_trans_mm']:.3f} ± "
+                     f"{m['rpe_trans_std_mm']:.3f} mm | RPE-rot {m['rpe_rot_deg']:.4f} ± {m['rpe_rot_std_deg']:.4f} deg"
+                     f"{over}")
     if m.get("map_points"):
         lines.append(f"map: {m['map_points']} points")
     if m.get("skipped_outputs"):

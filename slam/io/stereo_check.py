@@ -1,10 +1,12 @@
 """Whether a stereo pair looks like one: sub-pixel matches between the views, the vertical
-disparity a rectified pair must not have and the sign its disparities must have.
+disparity a rectified pair must not have, the sign its disparities must have, and the likely cause
+when a frame's views give no depth.
 
 A rectified pair's matches lie on one row (vertical disparity 0) and the left view's features lie
-to the right of the right view's (positive disparity ``d``, depth ``fx * baseline / d``). A
-calibration of other images, or views that are not a pair, leave a vertical disparity; left and
-right swapped give negative disparities.
+to the right of the right view's (positive disparity ``d``, depth ``fx * baseline / d``). These
+figures tell apart what people's inputs get wrong: a calibration of other images (vertical
+disparity), left and right swapped (negative disparities), a baseline in metres (depths a thousand
+times too small), masks that leave nothing (no valid pixel).
 """
 from __future__ import annotations
 
@@ -24,6 +26,8 @@ ROW_ALIGNED_PX = 0.5
 MAX_VERTICAL_PX = 1.0
 #: fewer matches than this say nothing about a pair (textureless, dark, unreadable)
 MIN_MATCHES = 20
+#: below this share of valid pixels a frame's masks leave (nearly) nothing to track
+MIN_VALID_SHARE = 0.01
 
 
 @dataclass
@@ -83,3 +87,42 @@ def check_rectified_rows(left: np.ndarray, right: np.ndarray, where: str, rectif
         raise DataError(f"{where}: {100 * found.negative_share:.0f} % of {frame}'s stereo matches have a negative "
                         f"disparity {how}: the left and right views are swapped (or T has the wrong sign)")
     return found
+
+
+def likely_cause(left: np.ndarray, right: np.ndarray, valid: np.ndarray, fx_px: float, baseline_mm: float,
+                 depth_range_mm: tuple[float, float]) -> str:
+    """Why a frame's views give too few valid pixels, said with the figure that tells it: masks
+    that leave nothing (the share of valid pixels), left and right swapped (negative disparities)
+    or mispaired (vertical disparities), a baseline in metres or micrometres (the stereo depth
+    outside ``depth_range_mm``). '' when none of these shows.
+
+    Args:
+        left, right: ``(H, W, 3)`` uint8 RGB rectified views.
+        valid: ``(H, W)`` bool, the frame's valid pixels (instrument masks, highlights, dark).
+        fx_px, baseline_mm: the rectified camera's focal length and baseline (depth =
+            ``fx_px * baseline_mm / disparity``).
+        depth_range_mm: ``(near, far)`` depths the tracking uses (``depth.min_depth_mm``,
+            ``depth.max_depth_mm``).
+    """
+    share = float(np.mean(valid))
+    if share < MIN_VALID_SHARE:
+        return (f"only {100 * share:.1f} % of the frame's pixels are valid: are its masks empty (non-zero = "
+                "tissue), or the frame dark or saturated?")
+    found = disparities(left, right)
+    if found.matches < MIN_MATCHES:
+        return ""
+    if found.negative_share > 0.5:
+        return (f"{100 * found.negative_share:.0f} % of the stereo matches have a negative disparity: are the left "
+                "and right views swapped?")
+    if found.vertical_px > MAX_VERTICAL_PX:
+        return (f"the views' matches are {found.vertical_px:.1f} px apart vertically (median): are the views "
+                "mispaired (frames of different times), or the calibration not theirs?")
+    depth = fx_px * baseline_mm / found.median_px if found.median_px > 0 else float("inf")
+    near, far = depth_range_mm
+    if depth < near:
+        return (f"the stereo depth is {depth:.3g} mm (median), nearer than the {near:g} mm tracked: is the "
+                f"calibration's baseline ({baseline_mm:.3g}) in metres? calibrations are in mm")
+    if depth > far:
+        return (f"the stereo depth is {depth:.3g} mm (median), farther than the {far:g} mm tracked: is the "
+                f"calibration's baseline ({baseline_mm:.3g}) in micrometres, or its focal length not the frames'?")
+    return ""
