@@ -101,6 +101,20 @@ def _empty_masks(data: Path) -> None:
         cv2.imwrite(str(data / "masks" / f"{k:06d}l.png"), np.zeros((128, 160), np.uint8))
 
 
+def _tiny_frames(data: Path, size=(10, 8)) -> None:
+    """A plain folder of ``size`` frames with its calibration for them."""
+    _as_plain(data)
+    for png in [*(data / "left").iterdir(), *(data / "right").iterdir()]:
+        cv2.imwrite(str(png), cv2.resize(cv2.imread(str(png)), size, interpolation=cv2.INTER_AREA))
+    calib = data / "calibration.yaml"
+    values = dict(line.split(": ") for line in calib.read_text().splitlines())
+    scale = size[0] / 160
+    values.update(fx=float(values["fx"]) * scale, fy=float(values["fy"]) * scale,
+                  cx=(float(values["cx"]) + 0.5) * scale - 0.5, cy=(float(values["cy"]) + 0.5) * scale - 0.5,
+                  width=size[0], height=size[1])
+    calib.write_text("".join(f"{k}: {v}\n" for k, v in values.items()))
+
+
 def _plain_with_a_gap(data: Path) -> None:
     """Unpadded right names, one of them one number off: no pairing by name, none by order."""
     _as_plain(data, right="{}")
@@ -134,6 +148,11 @@ BROKEN = {
     "left and right swapped": (_swapped_views, [], 2, "calibration.yaml: 100 % of the first frame's stereo matches "
                                                       "have a negative disparity taken as rectified: the left and "
                                                       "right views are swapped"),
+    "frames resized under 12 px": (lambda d: None, ["--set", "data.width=7", "--set", "data.height=5"], 2,
+                                   "config: data.width and data.height must be at least 12 px (the optical flow's "
+                                   "smallest image), got 7x5"),
+    "frames of 10x8": (_tiny_frames, [], 2, "seq: frames of 10x8 px are too small to track (at least 12x12: the "
+                                            "optical flow's smallest image)"),
     # ... and what they still cannot be told from before the frames fail: the likely cause, said once
     "baseline in metres": (_baseline_in_metres, [], 3, "the stereo depth is 0.0752 mm (median), nearer than the 20 "
                                                       "mm tracked: is the calibration's baseline (0.0045) in metres? "

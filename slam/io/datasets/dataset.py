@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from slam.io.datasets.base import StereoFrame
-from slam.io.datasets.config import DataConfig
+from slam.io.datasets.config import MIN_FRAME_PX, DataConfig
 from slam.io.datasets.masks import combine_masks, specular_mask
 from slam.io.datasets.selection import parse_frames
 from slam.errors import DataError
@@ -88,6 +88,9 @@ class StereoDataset:
         self.config = config
         self.processor = processor
         self.camera = processor.camera
+        if min(self.camera.width, self.camera.height) < MIN_FRAME_PX:
+            raise DataError(f"{self.path}: frames of {self.camera.width}x{self.camera.height} px are too small to track "
+                            f"(at least {MIN_FRAME_PX}x{MIN_FRAME_PX}: the optical flow's smallest image)")
         self.R1 = np.asarray(processor.R1, dtype=np.float64)
         self.num_frames_total = int(n_frames)
         if timestamps is None:
