@@ -115,6 +115,18 @@ def _tiny_frames(data: Path, size=(10, 8)) -> None:
     calib.write_text("".join(f"{k}: {v}\n" for k, v in values.items()))
 
 
+def _frame_folders(data: Path, stamps_scale: float) -> None:
+    """The copy as frame folders (``left_image/``, ``right_image/`` beside its .ini) with a
+    ``timestamps.txt`` of the ground truth's times times ``stamps_scale`` (1000: milliseconds)."""
+    for side, folder in (("l", "left_image"), ("r", "right_image")):
+        (data / folder).mkdir()
+        for k in range(FRAMES):
+            (data / "video_frames" / f"{k:06d}{side}.png").rename(data / folder / f"{k:06d}.png")
+    shutil.rmtree(data / "video_frames")
+    stamps, _ = read_tum(data / "groundtruth.txt")
+    (data / "timestamps.txt").write_text("".join(f"{t * stamps_scale:.6f}\n" for t in stamps))
+
+
 def _plain_with_a_gap(data: Path) -> None:
     """Unpadded right names, one of them one number off: no pairing by name, none by order."""
     _as_plain(data, right="{}")
@@ -153,6 +165,8 @@ BROKEN = {
                                    "smallest image), got 7x5"),
     "frames of 10x8": (_tiny_frames, [], 2, "seq: frames of 10x8 px are too small to track (at least 12x12: the "
                                             "optical flow's smallest image)"),
+    "timestamps.txt in milliseconds": (lambda d: _frame_folders(d, 1000.0), [], 0, None),
+    "timestamps.txt 2 apart": (lambda d: _frame_folders(d, 50.0), [], 0, None),
     # ... and what they still cannot be told from before the frames fail: the likely cause, said once
     "baseline in metres": (_baseline_in_metres, [], 3, "the stereo depth is 0.0752 mm (median), nearer than the 20 "
                                                       "mm tracked: is the calibration's baseline (0.0045) in metres? "
@@ -299,6 +313,31 @@ def test_a_davinci_calibration_of_cropped_frames(davinci, tmp_path, capsys, name
     assert rows(out / "trajectory.txt") == FRAMES
     warnings = [w for w in err.splitlines() if w]
     assert warnings == ([] if line is None else [f"WARNING slam: {xml}: {line}"])
+
+
+@pytest.mark.parametrize("scale, warning", [
+    (1000.0, "{data}/timestamps.txt: steps of 40 (median) read as milliseconds (25 fps); the trajectory's "
+             "timestamps are in seconds"),
+    (50.0, "{data}: the frames' timestamps step by 2 (median), not 1-1000 frames a second: the frames are taken at "
+           "25 fps (the default; --fps to give the rate)")])
+def test_timestamps_in_another_unit(sequence, tmp_path, capsys, scale, warning):
+    """``timestamps.txt`` in milliseconds: read as such, said once, the rate read off them and the
+    trajectory in seconds, which ``slam eval`` matches with the ground truth (in seconds); steps
+    that fit no unit: the rate falls back, said once (it fell back without a word)."""
+    data = copy_of(sequence, tmp_path)
+    _frame_folders(data, scale)
+    out = tmp_path / "out"
+    assert main(["run", str(data), "--weights", "constant", "--out", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert [line for line in err.splitlines() if "timestamps" in line] == [f"WARNING slam: {warning.format(data=data)}"]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frame_rate"] == 25.0
+    stamps, _ = read_tum(out / "trajectory.txt")
+    gt_stamps, _ = read_tum(data / "groundtruth.txt")
+    np.testing.assert_allclose(stamps, gt_stamps * (1.0 if scale == 1000.0 else scale), atol=1e-6)
+    if scale == 1000.0:
+        assert main(["eval", str(data / "groundtruth.txt"), str(out / "trajectory.txt"), "--quiet"]) == 0
+        assert "ATE-RMSE" in capsys.readouterr().out
 
 
 def test_ground_truth_shorter_than_the_frames(sequence, tmp_path, capsys):

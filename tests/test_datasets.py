@@ -434,7 +434,9 @@ def test_scared_poses_past_the_last_frame_are_dropped_with_one_log_line(tmp_path
     for i in (6, 7):
         (frame_data / f"frame_data{i:06d}.json").write_text((frame_data / "frame_data000005.json").read_text())
     ds = open_dataset(root, native(rectify_mode="pseudo"))
-    assert gt_warnings(caplog) == [f"{frame_data}: 8 poses for 6 frames; ignoring the last 2"]
+    assert gt_warnings(caplog) == [f"{frame_data}: 8 poses for 6 frames; ignoring the last 2",
+                                   f"{root}: no timestamps (timestamps.txt, ground truth, a video's rate) and no "
+                                   "--fps: the frames are taken at 25 fps"]
     np.testing.assert_allclose(ds.gt_poses, np.linalg.inv(T_cw), atol=1e-9)
     ds.close()
 

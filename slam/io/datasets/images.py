@@ -6,6 +6,7 @@ PNGs spans 0-4095, not 0-65535), read once per sequence from its first frames.
 """
 from __future__ import annotations
 
+import logging
 import math
 import re
 from pathlib import Path
@@ -15,6 +16,8 @@ import cv2
 import numpy as np
 
 from slam.errors import DataError
+
+log = logging.getLogger("slam")
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 _NUMBER = re.compile(r"(\d+)")
@@ -134,10 +137,39 @@ def to_rgb8(img: np.ndarray, depth: int, source: Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
+#: the units a ``timestamps.txt`` may be written in: name, units in a second
+TIME_UNITS = (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9))
+#: frame rates (fps) whose timestamps are taken as seconds (those of ``StereoDataset.fps``)
+SECONDS_RATES = (1.0, 1000.0)
+#: frame rates (fps) a camera records at: steps that give one in another unit are read in it
+CAMERA_RATES = (1.0, 120.0)
+
+
+def in_seconds(stamps: np.ndarray, source: Path) -> np.ndarray:
+    """Timestamps ``(N,)`` in seconds. Their median step decides the unit: seconds where it gives
+    1-1000 fps; else milliseconds, microseconds or nanoseconds where one of them gives 1-120 fps
+    (a warning names the unit and the rate: 40 ms steps are 25 fps, where in seconds they would be
+    one frame every 40 s); else as they are (the frame rate then falls back, with a warning)."""
+    if len(stamps) < 2:
+        return stamps
+    step = float(np.median(np.diff(stamps)))
+    if SECONDS_RATES[0] <= 1.0 / step <= SECONDS_RATES[1]:
+        return stamps
+    for name, per_second in TIME_UNITS:
+        rate = per_second / step
+        if CAMERA_RATES[0] <= rate <= CAMERA_RATES[1]:
+            log.warning("%s: steps of %g (median) read as %s (%.4g fps); the trajectory's timestamps are in seconds",
+                        source, step, name, rate)
+            return stamps / per_second
+    return stamps
+
+
 def read_timestamps(path: Path, n_frames: int) -> Optional[np.ndarray]:
-    """``timestamps.txt``: one timestamp (seconds) per frame and line, the last number of the line
-    (``index timestamp`` rows work too), ``#`` lines are comments. None when the file is absent;
-    DataError naming it for another count than ``n_frames`` or values that do not increase."""
+    """``timestamps.txt``: one timestamp per frame and line, the last number of the line (``index
+    timestamp`` rows work too), ``#`` lines are comments; in seconds, or in milliseconds,
+    microseconds or nanoseconds recognised by their steps (:func:`in_seconds`). None when the file
+    is absent; DataError naming it for another count than ``n_frames`` or values that do not
+    increase."""
     if not path.is_file():
         return None
     stamps = []
@@ -154,4 +186,4 @@ def read_timestamps(path: Path, n_frames: int) -> Optional[np.ndarray]:
         raise DataError(f"{path}: {len(stamps)} timestamps for {n_frames} frames (need one per frame)")
     if n_frames > 1 and not np.all(np.diff(stamps) > 0):
         raise DataError(f"{path}: timestamps must increase")
-    return stamps
+    return in_seconds(stamps, path)
