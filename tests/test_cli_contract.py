@@ -401,6 +401,23 @@ def test_outputs_line_run_log_and_metrics_status(sequence, tmp_path, capsys):
     assert not list(out.glob(".*partial*"))
 
 
+@pytest.mark.parametrize("which", ["estimate", "ground truth"])
+def test_eval_refuses_repeated_timestamps(sequence, tmp_path, capsys, which):
+    """A timestamp that repeats an earlier row's in either file is one line naming both rows (it
+    was associated with the wrong pose: ATE 0.14 -> 2.11 mm), exit 2, nothing written."""
+    gt = sequence / "groundtruth.txt"
+    stamps, poses = read_tum(gt)
+    doubled = tmp_path / "doubled.txt"
+    write_tum(doubled, np.insert(stamps, 4, stamps[3]), np.insert(poses, 4, poses[7], axis=0))
+    args = [str(gt), str(doubled)] if which == "estimate" else [str(doubled), str(gt)]
+    report = tmp_path / "metrics.json"
+    assert main(["eval", *args, "--json", str(report), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"slam eval: error: {doubled}:6: timestamp {stamps[3]:.9g} repeats line 5's (1 repeated timestamp; "
+                   "a trajectory has one pose per time)\n")
+    assert not report.exists()
+
+
 def test_usage_errors_share_one_format(sequence, tmp_path, capsys):
     """Every command: ``slam COMMAND: error: ...`` on one line, exit 2."""
     cases = [
