@@ -418,6 +418,21 @@ def test_eval_refuses_repeated_timestamps(sequence, tmp_path, capsys, which):
     assert not report.exists()
 
 
+def test_threads_beyond_the_cores_are_capped(sequence, tmp_path, capsys):
+    """``threads=999`` on a machine of fewer cores: capped to them, said once (it ran 6.5x slower
+    without a word)."""
+    from slam.app.thread_use import available_cores
+
+    cores = available_cores()
+    out = tmp_path / "out"
+    assert main(["run", str(sequence), "--weights", "constant", "--frames", "3", "--out", str(out), "--quiet",
+                 "--set", "threads=999"]) == 0
+    assert capsys.readouterr().err.splitlines() == [f"WARNING slam: threads=999, but this process may use {cores} "
+                                                    f"cores: using {cores}"]
+    pools = json.loads((out / "metrics.json").read_text())["thread_pools"]
+    assert pools["opencv"] == cores and pools["torch"] <= cores
+
+
 def test_usage_errors_share_one_format(sequence, tmp_path, capsys):
     """Every command: ``slam COMMAND: error: ...`` on one line, exit 2."""
     cases = [
