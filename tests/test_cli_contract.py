@@ -433,6 +433,91 @@ def test_threads_beyond_the_cores_are_capped(sequence, tmp_path, capsys):
     assert pools["opencv"] == cores and pools["torch"] <= cores
 
 
+@pytest.fixture
+def small_disk(tmp_path):
+    """A folder on a 64 kB file system: a tmpfs mounted for the test where it may mount one, else
+    a file size limit of 64 kB on this process (RLIMIT_FSIZE, its signal ignored: a write beyond
+    it fails with EFBIG) while the test runs."""
+    import resource
+    import signal
+    import subprocess
+
+    folder = tmp_path / "small"
+    folder.mkdir()
+    try:
+        mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(folder)],
+                                 capture_output=True).returncode == 0
+    except OSError:         # no mount command
+        mounted = False
+    if mounted:
+        yield folder
+        # (lazily: open3d keeps the files it failed to write open, deleted, until the process ends)
+        subprocess.run(["umount", "--lazy", str(folder)], check=True)
+        return
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, hard))
+    try:
+        yield folder
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, handler)
+
+
+def test_a_full_disk_during_the_outputs(sequence, small_disk, capfd):
+    """The map, the mesh and the plot do not fit: each is named in the one error line (exit 2),
+    none is left half written (nor its temporary file), metrics.json lists them and keeps the
+    run's true status, the rows and the other outputs are there; open3d's writer prints nothing
+    (it printed a line per element it could not write, and left a truncated map.ply)."""
+    out = small_disk / "out"
+    assert main(["run", str(sequence), "--weights", "constant", "--frames", "5", "--export-map", "--mesh",
+                 "--out", str(out), "--quiet"]) == 2
+    captured = capfd.readouterr()
+    metrics = json.loads((out / "metrics.json").read_text())
+    failed = metrics["output_errors"]
+    assert set(failed) == {"map", "mesh", "plot"} and metrics["skipped_outputs"] == ["map", "mesh", "plot"]
+    files = {"map": "map.ply", "mesh": "mesh.ply", "plot": "trajectory.png"}
+    for name, why in failed.items():
+        assert why.startswith(f"{out / files[name]}: ") and "\n" not in why
+        assert not (out / files[name]).exists()
+    assert captured.err == f"slam run: error: {'; '.join(failed.values())} (not written, no partial file left; " \
+                           "the other outputs are, and metrics.json lists these under skipped_outputs)\n"
+    assert metrics["status"] == "ok" and metrics["frames"] == 5 and rows(out / "trajectory.txt") == 5
+    assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "metrics.json", "run.log", "tracking.csv",
+                                                     "trajectory.txt"]
+    assert "skipped: map, mesh, plot" in captured.out
+
+
+def test_a_full_disk_during_the_frames(sequence, tmp_path, capsys, monkeypatch):
+    """A write of tracking.csv's that fails part way (as on a disk filling up): one line naming
+    the file, exit 2; the rows written before are whole (the half row taken back), no metrics.json."""
+    import errno
+    import os
+
+    import slam.io.row_file as row_file
+
+    room = {"left": 700}           # the bytes tracking.csv still gets: its header and a few rows
+    real_write = os.write
+
+    def filling_write(fd, data):
+        if not os.readlink(f"/proc/self/fd/{fd}").endswith("tracking.csv"):
+            return real_write(fd, data)
+        if room["left"] <= 0:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        done = real_write(fd, data[:room["left"]])
+        room["left"] -= done
+        return done
+
+    monkeypatch.setattr(row_file.os, "write", filling_write)
+    out = tmp_path / "out"
+    assert main(["run", str(sequence), "--weights", "constant", "--out", str(out), "--quiet"]) == 2
+    assert capsys.readouterr().err == f"slam run: error: {out / 'tracking.csv'}: No space left on device\n"
+    text = (out / "tracking.csv").read_text()
+    assert text.endswith("\n") and 1 < len(text.splitlines()) < FRAMES + 1 and len(text) <= 700
+    assert rows(out / "trajectory.txt") == len(text.splitlines())      # the frame that failed wrote its pose
+    assert not (out / "metrics.json").exists()
+
+
 def test_usage_errors_share_one_format(sequence, tmp_path, capsys):
     """Every command: ``slam COMMAND: error: ...`` on one line, exit 2."""
     cases = [

@@ -12,12 +12,14 @@ and right swapped). It writes the rectified pair side by side with horizontal li
 """
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 from typing import Optional
 
 import cv2
 import numpy as np
 
+from slam.app.run_folder import replaced_atomically
 from slam.io.stereo_check import ROW_ALIGNED_PX, disparities
 
 
@@ -81,7 +83,9 @@ def inspect(data: str | Path, config, out: Optional[Path] = None) -> dict:
         out = Path(out) if out else Path("runs") / f"inspect_{Path(data).resolve().stem}"
         out.mkdir(parents=True, exist_ok=True)
         picture = out / "rectified_pair.png"
-        cv2.imwrite(str(picture), epipolar_picture(frame.left, frame.right))
+        with replaced_atomically(picture) as tmp:
+            if not cv2.imwrite(str(tmp), epipolar_picture(frame.left, frame.right)):
+                raise OSError(errno.EIO, "could not be written", str(picture))
         report["picture"] = str(picture)
     finally:
         ds.close()

@@ -25,7 +25,7 @@ from slam.tracking.health import health_summary, nees, relative_error
 from slam.app.interrupts import SignalGate, signal_of
 from slam.app.prefetch import Prefetcher
 from slam.app.progress import Progress
-from slam.app.run_folder import replaced_atomically, write_json_atomically
+from slam.app.run_folder import complete_ply, native_stderr_silenced, replaced_atomically, write_json_atomically
 from slam.app.status import is_result, run_status
 from slam.app.thread_use import ThreadBudget, ThreadClock, pool_sizes
 from slam.tracking.state import FrameResult
@@ -65,6 +65,7 @@ class RunResult:
     signum: int = 0          # the signal that stopped it (SIGINT or SIGTERM), 0 when it ran to the end
     map_points: int = 0
     files: dict = field(default_factory=dict)
+    output_errors: dict = field(default_factory=dict)   # output -> why it could not be written (one line)
 
 
 class NoRecording:
@@ -176,7 +177,8 @@ class Pipeline:
                 progress to a batch driver).
         """
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        save_config(self.config, self.out_dir / "config.yaml")
+        with replaced_atomically(self.out_dir / "config.yaml") as tmp:
+            save_config(self.config, tmp)
         result = RunResult(out_dir=self.out_dir)
         n = len(self.dataset)
         writer = TumStreamWriter(self.out_dir / "trajectory.txt")
@@ -343,6 +345,9 @@ class Pipeline:
         if skipped:
             result.metrics["skipped_outputs"] = skipped
             log.warning("interrupted: skipped %s", ", ".join(skipped))
+        if result.output_errors:        # (the command names them in its one error line)
+            result.metrics["skipped_outputs"] = skipped + list(result.output_errors)
+            result.metrics["output_errors"] = result.output_errors
         write_json_atomically(self.out_dir / "metrics.json", result.metrics)
 
     def _final_trajectory(self, result: RunResult) -> tuple[np.ndarray, Optional[np.ndarray]]:
@@ -459,7 +464,9 @@ class Pipeline:
     def _write_slow_outputs(self, result: RunResult, estimate: np.ndarray, online: Optional[np.ndarray],
                             gate: SignalGate) -> list[str]:
         """Write the map, the mesh, the plot and the recording's end, in that order; a signal
-        (before or during one of them) skips the rest. Returns the names of those skipped."""
+        (before or during one of them) skips the rest. Returns the names of those skipped. One
+        that cannot be written (a full disk) leaves no file and goes to ``result.output_errors``;
+        the others are still written."""
         outputs = []
         if self.map is not None:
             outputs.append(("map", self._write_map))
@@ -477,21 +484,24 @@ class Pipeline:
                 if hasattr(self.logger, "close"):
                     self.logger.close()
                 return [n for n, _ in outputs[i:]]
+            except OSError as err:
+                result.output_errors[name] = f"{err.filename}: {err.strerror}" if err.filename else str(err)
         return []
 
     def _write_map(self, result: RunResult, estimate, online) -> None:
         # the map lives in the rectified world frame of the VO, which is the world frame: only
         # camera frames are rotated by R1, the world is shared.
         path = self.out_dir / "map.ply"
-        with replaced_atomically(path) as tmp:
+        with replaced_atomically(path, check=complete_ply) as tmp, native_stderr_silenced():
             result.map_points = self.map.save_ply(tmp)
         result.metrics["map_points"] = result.map_points
         result.files["map"] = str(path)
 
     def _write_mesh(self, result: RunResult, estimate, online) -> None:
         path = self.out_dir / "mesh.ply"
-        with replaced_atomically(path) as tmp:
-            result.metrics["mesh_triangles"] = self.map.save_mesh(tmp)
+        with replaced_atomically(path, check=complete_ply) as tmp, native_stderr_silenced():
+            triangles = self.map.save_mesh(tmp)
+        result.metrics["mesh_triangles"] = triangles
         result.files["mesh"] = str(path)
 
     def _write_plot(self, result: RunResult, estimate, online) -> None:

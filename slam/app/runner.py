@@ -5,10 +5,12 @@ from __future__ import annotations
 import contextlib
 import logging
 import signal
+import sys
 from pathlib import Path
 from typing import Callable, Iterator
 
 from slam.config import SlamConfig
+from slam.errors import SlamError
 from slam.app.interrupts import exit_code
 from slam.app.pipeline import Pipeline, RunResult
 from slam.app.status import is_result
@@ -58,7 +60,7 @@ def run_from_config(data: str | Path, config: SlamConfig, out: str | Path | None
         dataset = dataset.select(frames)
     out_dir.mkdir(parents=True, exist_ok=True)
     clear_run_files(out_dir)
-    with run_log(out_dir / RUN_LOG):
+    with run_log(out_dir / RUN_LOG) as run_log_file:
         log.info("slam run %s -> %s (%s, %d frames)", dataset.path, out_dir, config.tracking.mode, len(dataset))
         logger = make_logger(config, dataset, spawn)
         pipeline = Pipeline(config, dataset, out_dir, logger=logger, provenance=provenance(config, frames))
@@ -66,16 +68,47 @@ def run_from_config(data: str | Path, config: SlamConfig, out: str | Path | None
         result.files["log"] = str(out_dir / RUN_LOG)
         summary = summary_text(result)
         log.info("%s", summary)
+    if run_log_file.error is not None:
+        record_output_error(result, "log", run_log_file.error)
     if print_summary:
         print(summary)
+    if result.output_errors:
+        raise SlamError(f"{'; '.join(result.output_errors.values())} (not written, no partial file left; the other "
+                        "outputs are, and metrics.json lists these under skipped_outputs)")
     return result
 
 
+def record_output_error(result: RunResult, name: str, error: str) -> None:
+    """An output the runner writes (``run.log``) that could not be written: in ``result`` and its
+    ``metrics.json`` as the pipeline's own are."""
+    from slam.app.run_folder import write_json_atomically
+
+    result.output_errors[name] = error
+    result.files.pop(name, None)
+    result.metrics["skipped_outputs"] = [*result.metrics.get("skipped_outputs", []), name]
+    result.metrics["output_errors"] = result.output_errors
+    write_json_atomically(result.out_dir / "metrics.json", result.metrics)
+
+
+class RunLogHandler(logging.FileHandler):
+    """``run.log``'s handler: a record it cannot write (a full disk) stops it, the first error
+    kept in ``error`` (one line naming the file), where logging would print a traceback per record."""
+
+    error = None
+
+    def handleError(self, record: logging.LogRecord) -> None:  # noqa: N802 - logging's API
+        if self.error is None:
+            err = sys.exc_info()[1]
+            self.error = f"{self.baseFilename}: {getattr(err, 'strerror', None) or err}"
+        self.setLevel(logging.CRITICAL + 1)
+
+
 @contextlib.contextmanager
-def run_log(path: Path) -> Iterator[None]:
+def run_log(path: Path) -> Iterator[RunLogHandler]:
     """What the project logs (info and above, with times) goes to ``path`` as well while the
-    block runs; the console keeps its own level."""
-    handler = logging.FileHandler(path, mode="a", encoding="utf-8")
+    block runs; the console keeps its own level. Yields the handler (its ``error``: why the file
+    could not be written, or None)."""
+    handler = RunLogHandler(path, mode="a", encoding="utf-8")
     handler.setLevel(logging.INFO)
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     loggers = [logging.getLogger(name) for name in PROJECT_LOGGERS]
@@ -85,12 +118,15 @@ def run_log(path: Path) -> Iterator[None]:
         if lg.getEffectiveLevel() > logging.INFO:
             lg.setLevel(logging.INFO)
     try:
-        yield
+        yield handler
     finally:
         for lg, level in zip(loggers, levels):
             lg.removeHandler(handler)
             lg.setLevel(level)
-        handler.close()
+        try:
+            handler.close()         # (flushes what it still holds)
+        except OSError as err:
+            handler.error = handler.error or f"{path}: {err.strerror or err}"
 
 
 def exit_status(result: RunResult) -> int:

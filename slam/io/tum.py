@@ -8,12 +8,12 @@ below convert at the boundary (``scale_to_mm``).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import IO
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from slam.errors import DataError
+from slam.io.row_file import RowFile
 
 M_TO_MM = 1000.0
 
@@ -107,22 +107,21 @@ def write_tum(path: str | Path, timestamps: np.ndarray, poses: np.ndarray, scale
 
 
 class TumStreamWriter:
-    """Appends TUM rows as frames are processed and flushes each one, so an interrupted run
-    leaves a valid trajectory of the frames done."""
+    """Appends TUM rows as frames are processed, each on disk when written
+    (:class:`slam.io.row_file.RowFile`), so an interrupted run leaves a valid trajectory of the
+    frames done, and one whose disk filled up the rows before (the OSError naming the file)."""
 
     def __init__(self, path: str | Path, scale_from_mm: bool = True):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._scale = scale_from_mm
-        self._fh: IO[str] | None = open(self.path, "w")
+        self._fh: RowFile | None = RowFile(self.path)
         self._fh.write("# timestamp tx ty tz qx qy qz qw\n")
-        self._fh.flush()
         self.rows = 0
 
     def write(self, timestamp: float, pose: np.ndarray) -> None:
         assert self._fh is not None, "writer closed"
         self._fh.write(format_tum_row(float(timestamp), pose, self._scale) + "\n")
-        self._fh.flush()
         self.rows += 1
 
     def close(self) -> None:
