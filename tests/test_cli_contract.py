@@ -518,6 +518,21 @@ def test_a_full_disk_during_the_frames(sequence, tmp_path, capsys, monkeypatch):
     assert not (out / "metrics.json").exists()
 
 
+def test_a_run_log_that_cannot_be_written(sequence, tmp_path, capsys):
+    """run.log on a device that is always full: the run goes on, the log is named in the one
+    error line and listed in metrics.json (logging printed a traceback per record)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "run.log").symlink_to("/dev/full")
+    assert main(["run", str(sequence), "--weights", "constant", "--frames", "3", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err == f"slam run: error: {out / 'run.log'}: No space left on device (not written, no partial file left; " \
+                  "the other outputs are, and metrics.json lists these under skipped_outputs)\n"
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["skipped_outputs"] == ["log"] and list(metrics["output_errors"]) == ["log"]
+    assert metrics["status"] == "ok" and rows(out / "trajectory.txt") == 3 and (out / "trajectory.png").is_file()
+
+
 def test_usage_errors_share_one_format(sequence, tmp_path, capsys):
     """Every command: ``slam COMMAND: error: ...`` on one line, exit 2."""
     cases = [
