@@ -284,3 +284,28 @@ def test_inspect_says_whether_rectified_frames_were_resized(sources, tmp_path, c
     assert report["output_size"] == (f"{size[0]}x{size[1]}" if size[0] else "160x128")
     printed = [line.split(None, 1) for line in capsys.readouterr().out.splitlines()]
     assert ["rectified", expected] in printed
+
+
+def test_the_likely_cause_of_views_that_give_no_depth(sources):
+    """What ``slam run`` says once when its frames fail, read off one frame: masks that leave
+    nothing, left and right swapped, views of different times, a baseline in metres, nothing."""
+    from slam.io.stereo_check import likely_cause
+
+    rigid, _ = sources
+    ds = open_dataset(rigid, native())
+    first, other = ds.frame(0), ds.frame(2)
+    cam, near_far = ds.camera, (20.0, 250.0)
+    valid = np.ones(first.mask.shape, bool)
+    assert likely_cause(first.left, first.right, valid, cam.fx, cam.baseline_mm, near_far) == ""
+    assert likely_cause(first.left, first.right, ~valid, cam.fx, cam.baseline_mm, near_far).startswith(
+        "only 0.0 % of the frame's pixels are valid: are its masks empty")
+    assert likely_cause(first.right, first.left, valid, cam.fx, cam.baseline_mm, near_far).endswith(
+        "of the stereo matches have a negative disparity: are the left and right views swapped?")
+    assert likely_cause(first.left, other.right, valid, cam.fx, cam.baseline_mm, near_far).endswith(
+        "px apart vertically (median): are the views mispaired (frames of different times), or the calibration "
+        "not theirs?")
+    assert likely_cause(first.left, first.right, valid, cam.fx, cam.baseline_mm / 1000, near_far).endswith(
+        f"nearer than the 20 mm tracked: is the calibration's baseline ({cam.baseline_mm / 1000:.3g}) in metres? "
+        "calibrations are in mm")
+    assert "farther than the 250 mm tracked" in likely_cause(first.left, first.right, valid, cam.fx,
+                                                             cam.baseline_mm * 1000, near_far)
