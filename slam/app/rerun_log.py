@@ -334,12 +334,12 @@ class RerunLogger:
         self.map_every = int(getattr(config, "map_every", 0) or 0)
         self.rerun_every = max(int(getattr(config, "rerun_every", 1) or 1), 1)
         self.positions: list[np.ndarray] = []  # estimated positions so far, m (the only history kept)
-        self.depth_range: Optional[tuple[float, float]] = None   # the scene's depths so far (depth_range)
         self._gt_positions = None if self.gt_poses is None else self.gt_poses[:, :3, 3] / 1000.0
         self._parts: dict[str, int] = {}  # trajectory entity -> parts logged
         self._last_k: Optional[int] = None
         self._last_time: Optional[float] = None
         self._pinhole_key: Optional[tuple] = None
+        self.depth_range: Optional[tuple[float, float]] = None   # the scene's depths so far (depth_range)
         self._closed = False
         self.path: Optional[Path] = Path(config.rerun) if getattr(config, "rerun", "") else None
         # a file alone gathers a few seconds of rows per chunk (each chunk carries ~1 kB of schema:
