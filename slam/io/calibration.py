@@ -604,7 +604,7 @@ def _fitted(calib: RawStereoCalibration, frame_size: tuple[int, int], max_factor
             return _scaled(fitted, 1.0 / scale, (W, H)), 1.0 / scale
     raise DataError(f"{where}: its principal point ({cx:.0f}, {cy:.0f}) fits no calibration size for frames "
                     f"of {W}x{H} (expected near ({W / 2:.0f}, {H / 2:.0f}) or an integer multiple of it; "
-                    f"{CROP_HINT}, and its size)")
+                    f"{CROP_HINT})")
 
 
 def calibration_file(path: str | Path) -> Path:
