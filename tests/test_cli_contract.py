@@ -525,7 +525,9 @@ def test_a_run_log_that_cannot_be_written(sequence, tmp_path, capsys):
     out.mkdir()
     (out / "run.log").symlink_to("/dev/full")
     assert main(["run", str(sequence), "--weights", "constant", "--frames", "3", "--out", str(out), "--quiet"]) == 2
-    err = capsys.readouterr().err
+    captured = capsys.readouterr()
+    err = captured.err
+    assert "skipped: log" in captured.out and "log=" not in captured.out.splitlines()[-1]
     assert err == f"slam run: error: {out / 'run.log'}: No space left on device (not written, no partial file left; " \
                   "the other outputs are, and metrics.json lists these under skipped_outputs)\n"
     metrics = json.loads((out / "metrics.json").read_text())

@@ -70,6 +70,7 @@ def run_from_config(data: str | Path, config: SlamConfig, out: str | Path | None
         log.info("%s", summary)
     if run_log_file.error is not None:
         record_output_error(result, "log", run_log_file.error)
+        summary = summary_text(result)
     if print_summary:
         print(summary)
     if result.output_errors:
