@@ -220,9 +220,10 @@ class SlamConfig:
 
     Attributes:
         device: torch device of the VO and the map (``cpu``, ``cuda``, ...).
-        threads: the cores a run may use (0 = all of this process's): torch's pool gets every
-            one but the read-ahead thread's (at least 1), OpenCV's all of them, during the frames
-            (restored afterwards; ``slam.app.thread_use.ThreadBudget``). On a 2-core machine 1
+        threads: the cores a run may use (0 = all of this process's; more than it has: capped to
+            them, with a warning): torch's pool gets every one but the read-ahead thread's (at
+            least 1), OpenCV's all of them, during the frames (restored afterwards;
+            ``slam.app.thread_use.ThreadBudget``). On a 2-core machine 1
             torch thread with the stereo ahead ran 10.1 / 7.7 fps (frame2frame / frame2model,
             320x256) where 2 threads ran 8.7 / 6.1.
     """

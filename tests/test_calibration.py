@@ -1,6 +1,7 @@
 """Calibration readers and rectification (synthetic data made here, no files from elsewhere)."""
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import cv2
@@ -198,6 +199,65 @@ def test_read_scared_yaml_errors(tmp_path):
     with pytest.raises(DataError, match="c.yaml: missing matrix 'M2'") as err:
         read_scared_yaml(path, image_size=(320, 256))
     assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("names", [("M_l", "D_l", "M_r", "D_r", "R", "T"),
+                                   ("cameraMatrix1", "distCoeffs1", "cameraMatrix2", "distCoeffs2", "R", "T"),
+                                   ("K_left", "dist_left", "K_right", "dist_right", "rotation", "translation"),
+                                   ("LEFT_CAMERA_MATRIX", "left_distortion", "right_camera_matrix", "RIGHT-DISTORTION",
+                                    "r", "t")])
+@pytest.mark.parametrize("suffix", [".yaml", ".xml"])
+def test_opencv_calibrations_under_other_names(tmp_path, names, suffix):
+    """The da Vinci's ``M_l M_r D_l D_r``, OpenCV's samples' ``cameraMatrix1``, other tools'
+    ``K_left``: read as SCARED's ``M1 D1 M2 D2`` (names compared without case, ``_`` and ``-``),
+    from YAML or XML, through the reader of any calibration file."""
+    rig = Rig()
+    path = tmp_path / f"rig{suffix}"
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for name, value in zip(names, (rig.K1, rig.D1[None], rig.K2, rig.D2[None], rig.R, rig.T.reshape(3, 1))):
+        fs.write(name, np.asarray(value, dtype=np.float64))
+    fs.release()
+    cal = read_calibration(path)
+    for got, want in ((cal.K1, rig.K1), (cal.D1, rig.D1), (cal.K2, rig.K2), (cal.D2, rig.D2), (cal.R, rig.R),
+                      (cal.T, rig.T)):
+        np.testing.assert_allclose(got, want)
+
+
+def test_a_missing_matrix_names_what_was_looked_for(tmp_path):
+    rig = Rig()
+    path = write_scared_yaml(tmp_path / "c.yaml", rig.K1, rig.D1, rig.K2, rig.D2, rig.R, rig.T)
+    path.write_text(path.read_text().replace("M2:", "MX:"))
+    with pytest.raises(DataError) as err:
+        read_calibration(path)
+    assert str(err.value).startswith(f"{path}: missing matrix 'M2' (the right camera matrix; also read as K2, M_r, "
+                                     "K_r, M_right, K_right, cameraMatrix2")
+
+
+@pytest.mark.parametrize("deviation, warned", [(5e-4, False), (1.9e-3, True), (1.5e-2, True)])
+def test_a_rotation_written_with_few_digits_is_projected(tmp_path, caplog, deviation, warned):
+    rig = Rig()
+    R = rig.R * np.sqrt(1 + deviation)
+    path = write_scared_yaml(tmp_path / "c.yaml", rig.K1, rig.D1, rig.K2, rig.D2, R, rig.T)
+    with caplog.at_level(logging.WARNING, logger="slam"):
+        cal = read_calibration(path)
+    if warned:
+        assert caplog.messages == [f"{path}: stereo rotation R is {deviation:.1e} from orthonormal (max |R R^T - I|): "
+                                   "taken as the nearest rotation"]
+        np.testing.assert_allclose(cal.R, rig.R, atol=1e-12)
+    else:
+        assert caplog.messages == [] and np.array_equal(cal.R, R)
+
+
+@pytest.mark.parametrize("R, figures", [("scaled", "max |R R^T - I| = 0.05, det 1.08"),
+                                        ("reflection", "max |R R^T - I| = 0, det -1")])
+def test_a_matrix_far_from_a_rotation_is_refused_with_its_figures(tmp_path, R, figures):
+    rig = Rig()
+    R = rig.R * np.sqrt(1.05) if R == "scaled" else rig.R @ np.diag([1.0, 1.0, -1.0])
+    path = write_scared_yaml(tmp_path / "c.yaml", rig.K1, rig.D1, rig.K2, rig.D2, R, rig.T)
+    with pytest.raises(DataError) as err:
+        read_calibration(path)
+    assert str(err.value) == (f"{path}: stereo rotation R is not a rotation matrix ({figures}; up to 0.02 is taken "
+                              "for a rotation written with few digits)")
 
 
 def test_read_plain_yaml(tmp_path):

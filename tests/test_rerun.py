@@ -376,6 +376,31 @@ def test_encoded_depth_decodes_to_the_logged_mm(recording):
         assert np.array_equal(back > 0, depth > 0)
 
 
+def test_depth_coloured_over_the_scene_s_range(recording):
+    """The depth view's colours span the scene's own depths (each recorded frame's 2nd to 98th
+    percentile in the PNG's 0.1 mm, widened frame by frame), not a uint16 image's 0-65535 the viewer
+    guesses without a range (one saturated colour over the tissue)."""
+    from rerun.chunk import RrdReader
+
+    path, logged = recording
+    ranges = {}
+    for chunk in RrdReader(path).stream():
+        if chunk.entity_path == DEPTH and not chunk.is_static:
+            batch = chunk.to_record_batch()
+            for f, value in zip(batch.column("frame").to_pylist(), batch.column("EncodedDepthImage:depth_range")
+                                .to_pylist()):
+                if value is not None:
+                    ranges[f] = tuple(value[0])
+    assert sorted(ranges) == list(range(N))
+    lo, hi = np.inf, -np.inf
+    for k in range(N):
+        depth = logged["views"][k].depth[0, 0].numpy()
+        p2, p98 = np.percentile(depth[depth > 0], [2, 98]) * rl.DEPTH_UNITS_PER_MM
+        lo, hi = min(lo, p2), max(hi, p98)
+        assert ranges[k] == pytest.approx((lo, hi))
+    assert 500 < ranges[0][0] < ranges[0][1] < 1000      # the fake views' 50-100 mm
+
+
 def test_trajectory_logged_in_parts(tmp_path, monkeypatch):
     """Each frame logs only the part of the path it extends (bounded data per frame, not the
     whole path), the parts at any frame make the path so far (ground truth with a gap too), and

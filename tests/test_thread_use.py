@@ -54,11 +54,12 @@ def test_threads_is_the_runs_budget_of_cores():
 
     from slam.app.thread_use import ThreadBudget, available_cores
 
-    assert ThreadBudget.of(3, read_ahead=True) == ThreadBudget(torch=2, opencv=3)
-    assert ThreadBudget.of(1, read_ahead=True) == ThreadBudget(torch=1, opencv=1)
-    assert ThreadBudget.of(2, read_ahead=False) == ThreadBudget(torch=2, opencv=2)
     cores = available_cores()
+    assert ThreadBudget.of(1, read_ahead=True) == ThreadBudget(torch=1, opencv=1)
+    assert ThreadBudget.of(cores, read_ahead=False) == ThreadBudget(torch=cores, opencv=cores)
+    assert ThreadBudget.of(cores, read_ahead=True) == ThreadBudget(torch=max(1, cores - 1), opencv=cores)
     assert ThreadBudget.of(0, read_ahead=True) == ThreadBudget(torch=max(1, cores - 1), opencv=cores)
+    assert ThreadBudget.of(cores + 1, read_ahead=True) == ThreadBudget.of(cores, read_ahead=True)    # capped
     before = torch.get_num_threads(), cv2.getNumThreads()
     with ThreadBudget(torch=1, opencv=1).applied():
         assert (torch.get_num_threads(), cv2.getNumThreads()) == (1, 1)

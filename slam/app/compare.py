@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.config import SlamConfig
-from slam.app.run_folder import check_out_dir, write_text_atomically
+from slam.app.run_folder import check_out_dir, replaced_atomically, write_text_atomically
 from slam.app.runner import exit_status, run_from_config
 
 MODES = ("frame2frame", "frame2model")
@@ -103,6 +103,6 @@ def write_comparison(data, config: SlamConfig, frames, out_dir: Path, rows: dict
     title = f"{Path(data).name}: frame2frame vs frame2model"
     if any(len(e) != n for e in estimates.values()) or n < len(dataset):
         title += f" (first {n} of {len(dataset)} frames)"
-    plot_comparison(out_dir / "comparison.png", gt, {k: v[:n] for k, v in estimates.items()},
-                    dataset.timestamps[:n], title=title)
+    with replaced_atomically(out_dir / "comparison.png") as tmp:
+        plot_comparison(tmp, gt, {k: v[:n] for k, v in estimates.items()}, dataset.timestamps[:n], title=title)
     print(f"wrote {out_dir / 'comparison.md'}, {out_dir / 'comparison.png'}")

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slam.app.run_folder import replaced_atomically, write_text_atomically
 from slam.errors import SlamError
 from slam.evaluation.metrics import align, alignment_transform, evaluate, load_associated
 
@@ -62,13 +63,14 @@ def main_eval(gt_path, est_path, align_method: str = "auto", plot_path=None, jso
               f"points, {100 * metrics['map_within_1mm']:.1f} % within 1 mm")
     if json_path is not None:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).write_text(json.dumps(metrics, indent=2) + "\n")
+        write_text_atomically(Path(json_path), json.dumps(metrics, indent=2) + "\n")
         print(f"metrics written to {json_path}")
     if plot_path is not None:
         from slam.app.plots import plot_trajectory  # matplotlib only when asked for
 
-        plot_trajectory(plot_path, data["est"], gt=data["gt"], timestamps=data["stamps"],
-                        title=f"{Path(est_path).name} vs {Path(gt_path).name}",
-                        align_method=align_method)
+        Path(plot_path).parent.mkdir(parents=True, exist_ok=True)
+        with replaced_atomically(Path(plot_path)) as tmp:
+            plot_trajectory(tmp, data["est"], gt=data["gt"], timestamps=data["stamps"],
+                            title=f"{Path(est_path).name} vs {Path(gt_path).name}", align_method=align_method)
         print(f"plot written to {plot_path}")
     return 0

@@ -12,51 +12,15 @@ and right swapped). It writes the rectified pair side by side with horizontal li
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import errno
 from pathlib import Path
 from typing import Optional
 
 import cv2
 import numpy as np
 
-# a rectified pair's matches lie on one row: below this median |dy| (pixels) the views are row-aligned
-ROW_ALIGNED_PX = 0.5
-
-
-@dataclass
-class Disparities:
-    """Stereo matches of one pair: how many, median |vertical disparity| and the share of negative
-    horizontal disparities (px)."""
-
-    matches: int
-    vertical_px: float
-    negative_share: float
-    median_px: float
-
-    def line(self) -> str:
-        if self.matches == 0:
-            return "no feature matches"
-        return (f"{self.matches} matches, median |dy| {self.vertical_px:.2f} px, median disparity "
-                f"{self.median_px:.1f} px, {100 * self.negative_share:.0f} % negative")
-
-
-def disparities(left: np.ndarray, right: np.ndarray, max_corners: int = 800) -> Disparities:
-    """Sub-pixel stereo matches between two ``(H, W, 3)`` uint8 RGB views: corners of the left view
-    (Shi-Tomasi) followed into the right one with pyramidal Lucas-Kanade and back; a match whose
-    round trip misses by over 0.5 px is dropped."""
-    gl, gr = (cv2.cvtColor(v, cv2.COLOR_RGB2GRAY) for v in (left, right))
-    corners = cv2.goodFeaturesToTrack(gl, max_corners, 0.01, 5)
-    if corners is None or len(corners) < 2:
-        return Disparities(0, float("nan"), float("nan"), float("nan"))
-    lk = dict(winSize=(21, 21), maxLevel=4, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.01))
-    ahead, ok1, _ = cv2.calcOpticalFlowPyrLK(gl, gr, corners, None, **lk)
-    back, ok2, _ = cv2.calcOpticalFlowPyrLK(gr, gl, ahead, None, **lk)
-    good = (ok1[:, 0] == 1) & (ok2[:, 0] == 1) & (np.linalg.norm((back - corners)[:, 0], axis=1) < 0.5)
-    if not good.any():
-        return Disparities(0, float("nan"), float("nan"), float("nan"))
-    pl, pr = corners[good, 0], ahead[good, 0]
-    dx, dy = pl[:, 0] - pr[:, 0], pl[:, 1] - pr[:, 1]
-    return Disparities(int(len(dx)), float(np.median(np.abs(dy))), float(np.mean(dx < 0)), float(np.median(dx)))
+from slam.app.run_folder import replaced_atomically
+from slam.io.stereo_check import ROW_ALIGNED_PX, disparities
 
 
 def epipolar_picture(left: np.ndarray, right: np.ndarray, every_px: int = 32) -> np.ndarray:
@@ -74,7 +38,7 @@ def inspect(data: str | Path, config, out: Optional[Path] = None) -> dict:
     from slam.io.datasets import open_dataset
     from slam.io.rectification import ResizeOnly
 
-    ds = open_dataset(Path(data), config.data)
+    ds = open_dataset(Path(data), config.data, check_rows=False)    # (the report gives the rows' figure)
     try:
         cam = ds.camera
         proc = ds.processor
@@ -119,7 +83,9 @@ def inspect(data: str | Path, config, out: Optional[Path] = None) -> dict:
         out = Path(out) if out else Path("runs") / f"inspect_{Path(data).resolve().stem}"
         out.mkdir(parents=True, exist_ok=True)
         picture = out / "rectified_pair.png"
-        cv2.imwrite(str(picture), epipolar_picture(frame.left, frame.right))
+        with replaced_atomically(picture) as tmp:
+            if not cv2.imwrite(str(tmp), epipolar_picture(frame.left, frame.right)):
+                raise OSError(errno.EIO, "could not be written", str(picture))
         report["picture"] = str(picture)
     finally:
         ds.close()

@@ -25,7 +25,8 @@ from slam.tracking.health import health_summary, nees, relative_error
 from slam.app.interrupts import SignalGate, signal_of
 from slam.app.prefetch import Prefetcher
 from slam.app.progress import Progress
-from slam.app.run_folder import replaced_atomically, write_json_atomically
+from slam.app.run_folder import complete_ply, native_stderr_silenced, replaced_atomically, write_json_atomically
+from slam.app.status import is_result, run_status
 from slam.app.thread_use import ThreadBudget, ThreadClock, pool_sizes
 from slam.tracking.state import TRUST, FrameResult
 from slam.tracking.tracker import KnownPoseMapper, Tracker
@@ -34,9 +35,6 @@ from slam.io.tum import TumStreamWriter
 from vo.odometry import AheadFlow, View
 
 log = logging.getLogger("slam")
-
-#: a finished run whose failed share is above this is not a result (``slam run`` exits 3)
-MAX_FAILED_SHARE = 0.5
 
 
 @dataclass
@@ -68,6 +66,7 @@ class RunResult:
     signum: int = 0          # the signal that stopped it (SIGINT or SIGTERM), 0 when it ran to the end
     map_points: int = 0
     files: dict = field(default_factory=dict)
+    output_errors: dict = field(default_factory=dict)   # output -> why it could not be written (one line)
 
 
 class NoRecording:
@@ -179,7 +178,8 @@ class Pipeline:
                 progress to a batch driver).
         """
         self.out_dir.mkdir(parents=True, exist_ok=True)
-        save_config(self.config, self.out_dir / "config.yaml")
+        with replaced_atomically(self.out_dir / "config.yaml") as tmp:
+            save_config(self.config, tmp)
         result = RunResult(out_dir=self.out_dir)
         n = len(self.dataset)
         writer = TumStreamWriter(self.out_dir / "trajectory.txt")
@@ -347,6 +347,9 @@ class Pipeline:
         if skipped:
             result.metrics["skipped_outputs"] = skipped
             log.warning("interrupted: skipped %s", ", ".join(skipped))
+        if result.output_errors:        # (the command names them in its one error line)
+            result.metrics["skipped_outputs"] = skipped + list(result.output_errors)
+            result.metrics["output_errors"] = result.output_errors
         write_json_atomically(self.out_dir / "metrics.json", result.metrics)
 
     def _final_trajectory(self, result: RunResult) -> tuple[np.ndarray, Optional[np.ndarray]]:
@@ -375,7 +378,7 @@ class Pipeline:
         records = result.records
         done = len(records)
         failed = sum(r.failed for r in records)
-        status = run_status(done, failed)
+        status = run_status(done, failed, sum(r.flagged for r in records))
         metrics: dict = {
             "data": str(self.dataset.path),
             "status": status,
@@ -408,11 +411,31 @@ class Pipeline:
         if self.tracker.loops is not None:
             metrics["loop_closure"] = self.tracker.loops.summary(done, float(np.sum(self.timings.get("loop", [0.0]))))
         accuracy = self._accuracy(records, estimate, online)
-        if status == "ok":
+        cause = self._likely_cause(records) if status != "ok" else ""
+        if cause:
+            metrics["likely_cause"] = cause
+        if is_result(status):
             metrics.update(accuracy)
         elif accuracy:
             metrics["not_trusted"] = accuracy
         return metrics
+
+    def _likely_cause(self, records: list) -> str:
+        """Why the frames failed (or were flagged), read off the first such frame that reads
+        (:func:`slam.io.stereo_check.likely_cause`); '' when its figures show nothing."""
+        from slam.io.stereo_check import likely_cause
+
+        bad = ([k for k, r in enumerate(records) if r.failed and not r.reason.startswith("unreadable")]
+               or [k for k, r in enumerate(records) if r.flagged])
+        try:
+            frame = self.dataset.frame(bad[0]) if bad else None
+        except DataError:
+            frame = None
+        if frame is None:
+            return ""
+        depth = self.config.depth
+        return likely_cause(frame.left, frame.right, frame.mask, self.camera.fx, self.camera.baseline_mm,
+                            (depth.min_depth_mm, depth.max_depth_mm))
 
     def _groundtruth_of(self, records: list) -> tuple[Optional[np.ndarray], np.ndarray]:
         """The ground truth of the processed frames ``(N, 4, 4)`` (None without) and the mask of
@@ -447,7 +470,9 @@ class Pipeline:
     def _write_slow_outputs(self, result: RunResult, estimate: np.ndarray, online: Optional[np.ndarray],
                             gate: SignalGate) -> list[str]:
         """Write the map, the mesh, the plot and the recording's end, in that order; a signal
-        (before or during one of them) skips the rest. Returns the names of those skipped."""
+        (before or during one of them) skips the rest. Returns the names of those skipped. One
+        that cannot be written (a full disk) leaves no file and goes to ``result.output_errors``;
+        the others are still written."""
         outputs = []
         if self.map is not None:
             outputs.append(("map", self._write_map))
@@ -465,21 +490,24 @@ class Pipeline:
                 if hasattr(self.logger, "close"):
                     self.logger.close()
                 return [n for n, _ in outputs[i:]]
+            except OSError as err:
+                result.output_errors[name] = f"{err.filename}: {err.strerror}" if err.filename else str(err)
         return []
 
     def _write_map(self, result: RunResult, estimate, online) -> None:
         # the map lives in the rectified world frame of the VO, which is the world frame: only
         # camera frames are rotated by R1, the world is shared.
         path = self.out_dir / "map.ply"
-        with replaced_atomically(path) as tmp:
+        with replaced_atomically(path, check=complete_ply) as tmp, native_stderr_silenced():
             result.map_points = self.map.save_ply(tmp)
         result.metrics["map_points"] = result.map_points
         result.files["map"] = str(path)
 
     def _write_mesh(self, result: RunResult, estimate, online) -> None:
         path = self.out_dir / "mesh.ply"
-        with replaced_atomically(path) as tmp:
-            result.metrics["mesh_triangles"] = self.map.save_mesh(tmp)
+        with replaced_atomically(path, check=complete_ply) as tmp, native_stderr_silenced():
+            triangles = self.map.save_mesh(tmp)
+        result.metrics["mesh_triangles"] = triangles
         result.files["mesh"] = str(path)
 
     def _write_plot(self, result: RunResult, estimate, online) -> None:
@@ -507,11 +535,3 @@ class Pipeline:
         path = getattr(self.logger, "path", None)      # (a logger that records to no file has none)
         if path is not None:
             result.files["recording"] = str(path)
-
-
-def run_status(frames: int, failed: int) -> str:
-    """``ok``, or ``not a result: N of M frames failed`` when more than :data:`MAX_FAILED_SHARE`
-    of the processed frames failed (their poses are carried over, not tracked)."""
-    if frames > 0 and failed > MAX_FAILED_SHARE * frames:
-        return f"not a result: {failed} of {frames} frames failed"
-    return "ok"

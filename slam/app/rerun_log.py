@@ -28,7 +28,8 @@ every ``logging.rerun_every``-th frame, 0, N, 2N, ...):
 - ``world/camera/image``: the rectified left image, EncodedImage, JPEG (quality
   :data:`IMAGE_JPEG_QUALITY`), recorded frames.
 - ``world/camera/depth``: EncodedDepthImage, uint16 PNG in 0.1 mm (0 = no depth),
-  ``meter=10000``, recorded frames.
+  ``meter=10000``, coloured over the scene's depths (``depth_range``: :func:`depth_range`),
+  recorded frames.
 - ``world/camera/flow``: temporal flow, HSV colour-coded, EncodedImage JPEG
   (:data:`CODED_JPEG_QUALITY`), recorded frames but the first.
 - ``world/camera/weights/w2d``, ``world/camera/weights/w3d``: weight maps, min..max of the frame
@@ -95,6 +96,9 @@ CODED_JPEG_QUALITY = 85
 DEPTH_UNITS_PER_MM = 10
 DEPTH_METER = 1000.0 * DEPTH_UNITS_PER_MM   # rerun's DepthMeter: depth units per metre
 DEPTH_MAX_MM = 65535 / DEPTH_UNITS_PER_MM   # deeper (and non-finite, <= 0) pixels are logged as 0
+# the depth view's colours span these percentiles of the recorded frames' depths (without a range
+# the viewer spans a uint16 image's 0-65535: one saturated colour over the tissue)
+DEPTH_PERCENTILES = (2.0, 98.0)
 FILE_FLUSH_TICK_S = 5.0  # the rerun batcher's tick when recording to a file only (SDK default 0.2 s)
 TRAJ_PART_FRAMES = 100  # frames per trajectory part (the data a frame re-logs is at most this)
 
@@ -255,6 +259,18 @@ def encode_depth_png(depth_mm: Any) -> bytes:
     return buf.tobytes()
 
 
+def depth_range(depth_mm: Any, seen: Optional[tuple[float, float]] = None) -> Optional[tuple[float, float]]:
+    """The depth view's colour range in the PNG's units (``1 / DEPTH_UNITS_PER_MM`` mm): the
+    frame's depths between :data:`DEPTH_PERCENTILES` (``depth_mm`` ``(H, W)``, 0 = none), widened
+    to hold ``seen`` (the scene's range so far); ``seen`` where the frame has no depth."""
+    d = _hw(depth_mm).astype(np.float64)
+    d = d[np.isfinite(d) & (d > 0) & (d <= DEPTH_MAX_MM)]
+    if d.size == 0:
+        return seen
+    lo, hi = (float(v) * DEPTH_UNITS_PER_MM for v in np.percentile(d, DEPTH_PERCENTILES))
+    return (lo, hi) if seen is None else (min(lo, seen[0]), max(hi, seen[1]))
+
+
 def decode_depth_png(blob: bytes) -> np.ndarray:
     """The inverse of :func:`encode_depth_png`: ``(H, W)`` float32 mm, 0 where there was no depth."""
     q = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
@@ -335,6 +351,7 @@ class RerunLogger:
         self._last_k: Optional[int] = None
         self._last_time: Optional[float] = None
         self._pinhole_key: Optional[tuple] = None
+        self.depth_range: Optional[tuple[float, float]] = None   # the scene's depths so far (depth_range)
         self._closed = False
         self.path: Optional[Path] = Path(config.rerun) if getattr(config, "rerun", "") else None
         # a file alone gathers a few seconds of rows per chunk (each chunk carries ~1 kB of schema:
@@ -416,8 +433,9 @@ class RerunLogger:
             rec.log(CAMERA, rr.Transform3D(translation=T[:3, 3] / 1000.0, mat3x3=T[:3, :3]))
             rec.log(IMAGE, rr.EncodedImage(contents=encode_jpeg(image_to_u8(view.image), IMAGE_JPEG_QUALITY),
                                            media_type="image/jpeg"))
+            self.depth_range = depth_range(view.depth, self.depth_range)
             rec.log(DEPTH, rr.EncodedDepthImage(encode_depth_png(view.depth), media_type="image/png",
-                                                meter=DEPTH_METER))
+                                                meter=DEPTH_METER, depth_range=self.depth_range))
             rec.log(VALID, rr.SegmentationImage(_hw(view.valid).astype(np.uint8)))
             if track is not None:
                 for path, value, code in ((FLOW, getattr(track, "flow", None), flow_to_rgb),

@@ -7,6 +7,7 @@ the CPU time per thread says which thread bounds the frame rate.
 """
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import threading
@@ -16,6 +17,8 @@ from dataclasses import dataclass
 from typing import Iterator
 
 import numpy as np
+
+log = logging.getLogger("slam")
 
 
 class ThreadClock:
@@ -84,7 +87,8 @@ def available_cores() -> int:
 
 @dataclass(frozen=True)
 class ThreadBudget:
-    """The pools a run's ``threads`` (the cores it may use; 0: all) gives the libraries.
+    """The pools a run's ``threads`` (the cores it may use; 0: all; more than this process has:
+    capped to them, with a warning) gives the libraries.
 
     - torch: every core but the read-ahead thread's (which computes the next frame's stereo and
       flow beside the tracking), at least one; all of them without a read-ahead thread;
@@ -98,7 +102,10 @@ class ThreadBudget:
 
     @staticmethod
     def of(threads: int, read_ahead: bool) -> "ThreadBudget":
-        cores = threads if threads > 0 else available_cores()
+        available = available_cores()
+        if threads > available:      # more threads than cores only wait for them (6.5x slower at 999 on 2)
+            log.warning("threads=%d, but this process may use %d cores: using %d", threads, available, available)
+        cores = min(threads, available) if threads > 0 else available
         return ThreadBudget(torch=max(1, cores - 1) if read_ahead else cores, opencv=cores)
 
     @contextmanager

@@ -1,14 +1,15 @@
 """``tracking.csv``: one row per processed frame with its health figures, written as frames are
-processed (flushed per row, so an interrupted run keeps the rows of the frames done)."""
+processed (each row on disk when written, so an interrupted run keeps the rows of the frames done,
+and a full disk leaves whole rows: :class:`slam.io.row_file.RowFile`)."""
 from __future__ import annotations
 
 import csv
 import math
 from pathlib import Path
-from typing import IO
 
 import numpy as np
 
+from slam.io.row_file import RowFile
 from slam.tracking.health import FIGURES
 
 COLUMNS = ("frame", "timestamp", "failed", "flagged", "trust", "reason", "reference", "reference_frame") + FIGURES
@@ -20,7 +21,7 @@ class TrackingCsvWriter:
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh: IO[str] | None = open(self.path, "w", newline="")
+        self._fh: RowFile | None = RowFile(self.path)     # each row on disk, never half of one
         self._csv = csv.writer(self._fh)
         self._csv.writerow(COLUMNS)
         self._fh.flush()

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
+from slam.app.status import is_result
 from slam.batch import protocols
 from slam.batch.reports import REPORTS
 from slam.batch.runner import BatchOptions, run_batch
@@ -217,8 +218,10 @@ def row_of(task: RunTask, outcome: Optional[dict], resumed: bool) -> dict:
         row.update(frames=metrics.get("frames"), failed=len(metrics.get("failed_frames", [])),
                    flagged=len(metrics.get("flagged_frames", [])), fps=metrics.get("fps"))
         row.update({k: metrics[k] for k in METRIC_KEYS if k in metrics})
-        if row["status"] == "ok" and metrics.get("status", "ok") != "ok":    # too many frames failed
+        if row["status"] == "ok" and not is_result(metrics.get("status", "ok")):    # too many frames failed
             row.update(status="not a result", message=metrics["status"])
+        elif row["status"] == "ok" and metrics.get("status", "ok") != "ok":       # untrusted: scored, marked
+            row.update(message=metrics["status"])
         if task.require_groundtruth and row["status"] == "ok" and "ate_rmse_mm" not in metrics:
             row.update(status="error", message="too few frames with ground truth to evaluate")
     accuracy = read_json(Path(task.out_dir) / MAP_ACCURACY)

@@ -271,14 +271,15 @@ def default_max_diff(gt_stamps) -> float:
 
 
 def load_associated(gt_path, est_path, max_diff: float | None = None) -> dict:
-    """Read two TUM files (mm) and associate them by timestamp.
+    """Read two TUM files (mm) and associate them by timestamp (a timestamp repeated in either is a
+    DataError naming its line: one pose per time).
 
     Returns:
         dict(stamps, gt, est, n_gt, n_est, max_diff): the matched ground-truth stamps ``(M,)``,
         poses ``(M, 4, 4)`` each, and the sizes of the files.
     """
-    gt_stamps, gt = read_tum(gt_path)
-    est_stamps, est = read_tum(est_path)
+    gt_stamps, gt = read_tum(gt_path, unique_stamps=True)
+    est_stamps, est = read_tum(est_path, unique_stamps=True)
     if max_diff is None:
         max_diff = default_max_diff(gt_stamps)
     gi, ei = associate(gt_stamps, est_stamps, max_diff)

@@ -28,6 +28,7 @@ bytes or whitespace only, in every format: :func:`calibration_file`).
 from __future__ import annotations
 
 import configparser
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +38,8 @@ import numpy as np
 
 from slam.errors import DataError
 from vo.camera import StereoCamera
+
+log = logging.getLogger("slam")
 
 
 @dataclass
@@ -97,11 +100,34 @@ class RawStereoCalibration:
                 raise DataError(f"{where}: invalid {label} distortion coefficients ({D.size} values)")
         if not np.all(np.isfinite(self.R)) or not np.all(np.isfinite(self.T)):
             raise DataError(f"{where}: non-finite stereo extrinsics")
-        if abs(np.linalg.det(self.R) - 1.0) > 1e-3 or np.abs(self.R @ self.R.T - np.eye(3)).max() > 1e-3:
-            raise DataError(f"{where}: stereo rotation R is not a rotation matrix")
+        self.R = rotation_matrix(self.R, where)
         if self.baseline_mm <= 0:
             raise DataError(f"{where}: zero stereo baseline (T = 0)")
         return self
+
+
+#: a stereo rotation within this of orthonormal (max |R R^T - I|) is taken as it is
+R_EXACT = 1e-3
+#: up to this it is a rotation written with few digits: projected onto the nearest rotation, with a
+#: warning; beyond it (or with a negative determinant) it is no rotation and refused
+R_PROJECTED = 2e-2
+
+
+def rotation_matrix(R: np.ndarray, where: str) -> np.ndarray:
+    """The stereo rotation ``R`` ``(3, 3)`` of a calibration as a rotation matrix: as it is within
+    :data:`R_EXACT` of orthonormal, projected onto the nearest rotation (SVD, a warning giving the
+    figure) up to :data:`R_PROJECTED`, else DataError naming ``where`` with the figures."""
+    deviation = float(np.abs(R @ R.T - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if deviation <= R_EXACT and abs(det - 1.0) <= R_EXACT:
+        return R
+    if det <= 0 or deviation > R_PROJECTED:
+        raise DataError(f"{where}: stereo rotation R is not a rotation matrix (max |R R^T - I| = {round(deviation, 4):g}, "
+                        f"det {det:.3g}; up to {R_PROJECTED:g} is taken for a rotation written with few digits)")
+    U, _, Vt = np.linalg.svd(R)
+    log.warning("%s: stereo rotation R is %.1e from orthonormal (max |R R^T - I|): taken as "
+                                      "the nearest rotation", where, deviation)
+    return U @ Vt
 
 
 # --------------------------------------------------------------------------------------------
@@ -173,15 +199,41 @@ _SIZE_PAIRS = (("width", "height"), ("image_width", "image_height"), ("Camera.wi
                ("imageWidth", "imageHeight"), ("res_x", "res_y"))
 _SIZE_VECTORS = ("image_size", "imageSize", "ImageSize", "size")
 
+#: the names OpenCV stereo calibrations give each matrix, SCARED's first: OpenCV's samples
+#: (``M1``, ``cameraMatrix1``, ``distCoeffs1``), the da Vinci's (``M_l``, ``D_r``) and other tools'
+#: (``K_left``, ``left_camera_matrix``); matched ignoring case, ``_``, ``-`` and ``.``
+OPENCV_NAMES = {
+    "M1": ("M1", "K1", "M_l", "K_l", "M_left", "K_left", "cameraMatrix1", "cameraMatrixL", "cameraMatrixLeft",
+           "camera_matrix_left", "left_camera_matrix", "left_K", "left_M", "intrinsics_left", "left_intrinsics"),
+    "D1": ("D1", "D_l", "D_left", "distCoeffs1", "distCoeffsL", "distCoeffsLeft", "dist_coeffs_left",
+           "left_dist_coeffs", "distortion_left", "left_distortion", "dist_left", "left_D"),
+    "M2": ("M2", "K2", "M_r", "K_r", "M_right", "K_right", "cameraMatrix2", "cameraMatrixR", "cameraMatrixRight",
+           "camera_matrix_right", "right_camera_matrix", "right_K", "right_M", "intrinsics_right", "right_intrinsics"),
+    "D2": ("D2", "D_r", "D_right", "distCoeffs2", "distCoeffsR", "distCoeffsRight", "dist_coeffs_right",
+           "right_dist_coeffs", "distortion_right", "right_distortion", "dist_right", "right_D"),
+    "R": ("R", "rotation", "R_lr", "R_l2r"),
+    "T": ("T", "translation", "T_lr", "T_l2r"),
+}
+_WHAT = {"M1": "the left camera matrix", "D1": "the left distortion", "M2": "the right camera matrix",
+         "D2": "the right distortion", "R": "the stereo rotation", "T": "the stereo translation"}
+
+
+def _plain_name(name: str) -> str:
+    """A matrix name as :data:`OPENCV_NAMES` compares them: lower case, no ``_``, ``-`` or ``.``."""
+    return name.lower().replace("_", "").replace("-", "").replace(".", "")
+
 
 def read_scared_yaml(path: str | Path, image_size: Optional[Sequence[int]] = None) -> RawStereoCalibration:
-    """Read a SCARED ``endoscope_calibration.yaml`` (OpenCV FileStorage, ``!!opencv-matrix`` nodes).
+    """Read an OpenCV FileStorage stereo calibration (YAML or XML, ``!!opencv-matrix`` nodes), such
+    as SCARED's ``endoscope_calibration.yaml``.
 
-    Matrices ``M1 D1 M2 D2 R T`` (``T`` in mm, ``X_right = R X_left + T``). The image size is taken
-    from the file when present (``width``/``height``, ``image_width``/``image_height``,
-    ``Camera.width``/``Camera.height`` or a 2-vector ``image_size``/``imageSize``), else from
-    ``image_size`` = ``(width, height)`` given by the caller, else None (SCARED files usually have
-    none: :func:`fit_to_frames` decides it from the principal point).
+    Matrices ``M1 D1 M2 D2 R T`` (``T`` in mm, ``X_right = R X_left + T``), or the same under the
+    other names of :data:`OPENCV_NAMES` (``M_l D_l M_r D_r R T``, ``cameraMatrix1``, ...). The
+    image size is taken from the file when present (``width``/``height``,
+    ``image_width``/``image_height``, ``Camera.width``/``Camera.height`` or a 2-vector
+    ``image_size``/``imageSize``), else from ``image_size`` = ``(width, height)`` given by the
+    caller, else None (SCARED files usually have none: :func:`fit_to_frames` decides it from the
+    principal point).
     """
     import cv2
 
@@ -193,21 +245,28 @@ def read_scared_yaml(path: str | Path, image_size: Optional[Sequence[int]] = Non
     if not fs.isOpened():
         raise DataError(f"{path}: cannot open OpenCV calibration file")
     try:
+        names = {_plain_name(key): key for key in fs.root().keys()}
+
         def matrix(key: str, shape: tuple[int, ...] | None) -> np.ndarray:
-            node = fs.getNode(key)
+            found = [names[_plain_name(alias)] for alias in OPENCV_NAMES[key] if _plain_name(alias) in names]
+            if not found:
+                raise DataError(f"{path}: missing matrix '{key}' ({_WHAT[key]}; also read as "
+                                f"{', '.join(OPENCV_NAMES[key][1:])})")
+            name = found[0]
+            node = fs.getNode(name)
             if node.empty() or node.isNone():
-                raise DataError(f"{path}: missing matrix '{key}'")
+                raise DataError(f"{path}: missing matrix '{name}' ({_WHAT[key]})")
             if node.isSeq():
                 values = [node.at(i).real() for i in range(node.size())]
                 mat = np.asarray(values, dtype=np.float64)
             else:
                 mat = node.mat()
                 if mat is None:
-                    raise DataError(f"{path}: '{key}' is not a matrix")
+                    raise DataError(f"{path}: '{name}' is not a matrix")
                 mat = np.asarray(mat, dtype=np.float64)
             if shape is not None:
                 if mat.size != int(np.prod(shape)):
-                    raise DataError(f"{path}: '{key}' has {mat.size} values, expected {int(np.prod(shape))}")
+                    raise DataError(f"{path}: '{name}' has {mat.size} values, expected {int(np.prod(shape))}")
                 mat = mat.reshape(shape)
             return mat
 
@@ -397,9 +456,10 @@ CALIBRATION_NAMES = ("StereoCalibration.ini", "endoscope_calibration.yaml", "cal
 
 def read_calibration(path: str | Path) -> RawStereoCalibration | StereoCamera:
     """Any calibration file the project reads, told apart by its extension and content: a StereoMIS
-    ``.ini``, this project's ``.json``, or a ``.yaml``/``.yml``/``.xml`` holding either OpenCV's
-    ``M1 D1 M2 D2 R T`` (SCARED; a raw calibration) or ``fx fy cx cy baseline_mm`` (a plain,
-    rectified camera)."""
+    ``.ini``, this project's ``.json``, an OpenCV FileStorage ``.xml``, or a ``.yaml``/``.yml``
+    holding either OpenCV's ``M1 D1 M2 D2 R T`` (SCARED, or another naming of
+    :data:`OPENCV_NAMES`; a raw calibration: the file starts with OpenCV's ``%YAML:1.0`` or holds
+    ``!!opencv-matrix`` nodes) or ``fx fy cx cy baseline_mm`` (a plain, rectified camera)."""
     path = calibration_file(path)
     suffix = path.suffix.lower()
     if suffix == ".ini":
@@ -408,10 +468,10 @@ def read_calibration(path: str | Path) -> RawStereoCalibration | StereoCamera:
         return read_json_calibration(path)
     if suffix in (".yaml", ".yml", ".xml"):
         text = path.read_text(encoding="utf-8", errors="replace")
-        if "M1" in text or suffix == ".xml":
-            return read_scared_yaml(path)
+        if suffix == ".xml" or text.lstrip().startswith("%YAML:") or "opencv-matrix" in text or "M1" in text:
+            return read_scared_yaml(path)       # OpenCV's FileStorage (its header, its matrices)
         return read_plain_yaml(path)
-    raise DataError(f"{path}: unknown calibration format (expected .ini, .json, .yaml or .yml)")
+    raise DataError(f"{path}: unknown calibration format (expected .ini, .json, .yaml, .yml or .xml)")
 
 
 def is_rectified(calib: RawStereoCalibration, tol_px: float = 0.5, tol_rad: float = 1e-4) -> bool:
@@ -444,34 +504,58 @@ def _scaled(calib: RawStereoCalibration, factor: float, size: tuple[int, int]) -
 
 def fit_calibration(calib: RawStereoCalibration, frame_size: tuple[int, int]) -> RawStereoCalibration:
     """:func:`fit_to_frames`, logging a scaled calibration."""
-    import logging
-
     fitted, factor = fit_to_frames(calib, frame_size)
     if factor != 1.0:
-        logging.getLogger("slam").info("%s: calibration made at %gx the frames' size: intrinsics scaled by %g",
-                                       calib.name(), 1.0 / factor, factor)
+        log.info("%s: calibration made at %gx the frames' size: intrinsics scaled by %g", calib.name(),
+                 1.0 / factor, factor)
     return fitted
+
+
+#: what a calibration of larger images than the frames needs when the frames are a crop of them
+CROP_HINT = ("frames cropped from the calibrated images need the calibration of the crop: the crop's size, "
+             "and each principal point less the crop's offset")
+
+
+def _size_mismatch(where: str, calib_size: tuple[int, int], frame_size: tuple[int, int]) -> DataError:
+    """The error of a calibration made for ``calib_size`` used with frames of ``frame_size``
+    (``(width, height)`` each), with :data:`CROP_HINT` where the frames fit inside those images."""
+    (cw, ch), (W, H) = calib_size, frame_size
+    hint = f"; {CROP_HINT}" if W <= cw and H <= ch else ""
+    return DataError(f"{where}: calibration for {cw}x{ch} images does not fit frames of {W}x{H} "
+                     f"(neither equal nor an integer multiple or fraction of them{hint})")
+
+
+def check_principal_points(where: str, cameras: dict[str, np.ndarray], frame_size: tuple[int, int]) -> None:
+    """DataError naming ``where`` when the principal point of one of ``cameras`` (label ->
+    ``(3, 3)`` intrinsics, already at the frames' size) lies outside frames of ``frame_size``:
+    intrinsics of other images (another size, a crop)."""
+    W, H = frame_size
+    for label, K in cameras.items():
+        cx, cy = float(K[0, 2]), float(K[1, 2])
+        if not (-0.5 <= cx <= W - 0.5 and -0.5 <= cy <= H - 0.5):
+            raise DataError(f"{where}: the {label} principal point ({cx:.1f}, {cy:.1f}) lies outside the "
+                            f"{W}x{H} frames: intrinsics of other images ({CROP_HINT})")
 
 
 def fit_camera(camera: StereoCamera, frame_size: tuple[int, int], where: str,
                max_factor: int = 4) -> StereoCamera:
     """A rectified camera (a plain ``calibration.yaml``) at the frames' ``(width, height)``: as it
     is when its size is theirs, scaled (and logged) when it is an integer multiple or fraction of
-    it up to ``max_factor``, the rule of :func:`fit_to_frames`; else DataError naming ``where``."""
-    import logging
-
+    it up to ``max_factor``, the rule of :func:`fit_to_frames`; else DataError naming ``where``
+    (also when its principal point lies outside the frames, :func:`check_principal_points`)."""
     W, H = int(frame_size[0]), int(frame_size[1])
     cw, ch = int(camera.width), int(camera.height)
-    if (cw, ch) == (W, H):
-        return camera
+    fitted = camera if (cw, ch) == (W, H) else None
     for k in range(2, max_factor + 1):
-        if (cw, ch) == (k * W, k * H) or (k * cw, k * ch) == (W, H):
+        if fitted is None and ((cw, ch) == (k * W, k * H) or (k * cw, k * ch) == (W, H)):
             factor = W / cw
-            logging.getLogger("slam").info("%s: calibration made at %gx the frames' size: intrinsics scaled by %g",
-                                           where, 1.0 / factor, factor)
-            return camera.scaled(W, H)
-    raise DataError(f"{where}: calibration for {cw}x{ch} images does not fit frames of {W}x{H} "
-                    f"(neither equal nor an integer multiple or fraction of them)")
+            log.info("%s: calibration made at %gx the frames' size: intrinsics scaled by %g", where, 1.0 / factor,
+                     factor)
+            fitted = camera.scaled(W, H)
+    if fitted is None:
+        raise _size_mismatch(where, (cw, ch), (W, H))
+    check_principal_points(where, {"rectified": fitted.K}, (W, H))
+    return fitted
 
 
 def fit_to_frames(calib: RawStereoCalibration, frame_size: tuple[int, int],
@@ -483,9 +567,19 @@ def fit_to_frames(calib: RawStereoCalibration, frame_size: tuple[int, int],
     it (the aspect ratio kept). Without one, the principal point decides: near ``(W/2, H/2)`` the
     calibration is the frames'; near ``(k W/2, k H/2)`` it was made at ``k`` times their size
     (a SCARED calibration of 1280x1024 views used with frames halved to 640x512), and likewise at
-    a ``1/k`` fraction. Raises DataError naming the file when no factor up to ``max_factor`` fits.
+    a ``1/k`` fraction. Raises DataError naming the file when no factor up to ``max_factor`` fits,
+    and when a principal point of the fitted calibration lies outside the frames
+    (:func:`check_principal_points`).
     """
-    W, H = int(frame_size[0]), int(frame_size[1])
+    fitted, factor = _fitted(calib, (int(frame_size[0]), int(frame_size[1])), max_factor)
+    check_principal_points(calib.name(), {"left": fitted.K1, "right": fitted.K2}, fitted.image_size)
+    return fitted, factor
+
+
+def _fitted(calib: RawStereoCalibration, frame_size: tuple[int, int], max_factor: int
+            ) -> tuple[RawStereoCalibration, float]:
+    """:func:`fit_to_frames` but for the principal points' check."""
+    W, H = frame_size
     where = calib.name()
     if calib.image_size is not None:
         cw, ch = calib.image_size
@@ -496,8 +590,7 @@ def fit_to_frames(calib: RawStereoCalibration, frame_size: tuple[int, int],
                 return _scaled(calib, 1.0 / k, (W, H)), 1.0 / k
             if (k * cw, k * ch) == (W, H):
                 return _scaled(calib, float(k), (W, H)), float(k)
-        raise DataError(f"{where}: calibration for {cw}x{ch} images does not fit frames of {W}x{H} "
-                        f"(neither equal nor an integer multiple or fraction of them)")
+        raise _size_mismatch(where, (cw, ch), (W, H))
     cx, cy = 0.5 * (calib.K1[0, 2] + calib.K2[0, 2]), 0.5 * (calib.K1[1, 2] + calib.K2[1, 2])
     candidates = [float(k) for k in range(1, max_factor + 1)] + [1.0 / k for k in range(2, max_factor + 1)]
     for scale in candidates:        # scale = calibration size / frame size
@@ -510,7 +603,8 @@ def fit_to_frames(calib: RawStereoCalibration, frame_size: tuple[int, int],
                 return fitted, 1.0
             return _scaled(fitted, 1.0 / scale, (W, H)), 1.0 / scale
     raise DataError(f"{where}: its principal point ({cx:.0f}, {cy:.0f}) fits no calibration size for frames "
-                    f"of {W}x{H} (expected near ({W / 2:.0f}, {H / 2:.0f}) or an integer multiple of it)")
+                    f"of {W}x{H} (expected near ({W / 2:.0f}, {H / 2:.0f}) or an integer multiple of it; "
+                    f"{CROP_HINT})")
 
 
 def calibration_file(path: str | Path) -> Path:

@@ -8,22 +8,24 @@ below convert at the boundary (``scale_to_mm``).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import IO
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from slam.errors import DataError
+from slam.io.row_file import RowFile
 
 M_TO_MM = 1000.0
 
 
-def read_tum(path: str | Path, scale_to_mm: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def read_tum(path: str | Path, scale_to_mm: bool = True, unique_stamps: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Read a TUM trajectory.
 
     Args:
         path: text file with rows ``timestamp tx ty tz qx qy qz qw`` (metres).
         scale_to_mm: convert translations to millimetres (the project's internal unit).
+        unique_stamps: refuse a timestamp that repeats an earlier row's (a trajectory to evaluate
+            has one pose per time: a repeated one is associated with the wrong pose).
 
     Returns:
         timestamps ``(N,)`` float64 and poses ``(N, 4, 4)`` float64 ``T_wc``.
@@ -34,7 +36,7 @@ def read_tum(path: str | Path, scale_to_mm: bool = True) -> tuple[np.ndarray, np
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: trajectory file not found")
-    stamps, rows = [], []
+    stamps, rows, lines = [], [], []
     with open(path) as fh:
         for lineno, line in enumerate(fh, 1):
             line = line.strip()
@@ -49,8 +51,11 @@ def read_tum(path: str | Path, scale_to_mm: bool = True) -> tuple[np.ndarray, np
                 raise DataError(f"{path}:{lineno}: not a number in '{line}'") from None
             stamps.append(values[0])
             rows.append(values[1:])
+            lines.append(lineno)
     if not rows:
         raise DataError(f"{path}: no poses in trajectory file")
+    if unique_stamps:
+        refuse_repeated_stamps(path, stamps, lines)
     data = np.asarray(rows, dtype=np.float64)
     if not np.all(np.isfinite(data)):
         raise DataError(f"{path}: non-finite values in trajectory file")
@@ -62,6 +67,23 @@ def read_tum(path: str | Path, scale_to_mm: bool = True) -> tuple[np.ndarray, np
     poses[:, :3, :3] = Rotation.from_quat(quat / norms[:, None]).as_matrix()
     poses[:, :3, 3] = data[:, :3] * (M_TO_MM if scale_to_mm else 1.0)
     return np.asarray(stamps, dtype=np.float64), poses
+
+
+def refuse_repeated_stamps(path: Path, stamps: list[float], lines: list[int]) -> None:
+    """DataError naming ``path``, the line of the first timestamp that repeats an earlier row's and
+    that row's line, and how many repeat. ``stamps`` and their ``lines`` (1-based) in file order."""
+    first: dict[float, int] = {}
+    repeats = []
+    for stamp, line in zip(stamps, lines):
+        if stamp in first:
+            repeats.append((line, stamp, first[stamp]))
+        else:
+            first[stamp] = line
+    if repeats:
+        line, stamp, earlier = repeats[0]
+        count = f"{len(repeats)} repeated timestamp{'s' if len(repeats) > 1 else ''}"
+        raise DataError(f"{path}:{line}: timestamp {stamp:.9g} repeats line {earlier}'s ({count}; a trajectory has one "
+                        "pose per time)")
 
 
 def format_tum_row(timestamp: float, pose: np.ndarray, scale_from_mm: bool = True) -> str:
@@ -85,22 +107,21 @@ def write_tum(path: str | Path, timestamps: np.ndarray, poses: np.ndarray, scale
 
 
 class TumStreamWriter:
-    """Appends TUM rows as frames are processed and flushes each one, so an interrupted run
-    leaves a valid trajectory of the frames done."""
+    """Appends TUM rows as frames are processed, each on disk when written
+    (:class:`slam.io.row_file.RowFile`), so an interrupted run leaves a valid trajectory of the
+    frames done, and one whose disk filled up the rows before (the OSError naming the file)."""
 
     def __init__(self, path: str | Path, scale_from_mm: bool = True):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._scale = scale_from_mm
-        self._fh: IO[str] | None = open(self.path, "w")
+        self._fh: RowFile | None = RowFile(self.path)
         self._fh.write("# timestamp tx ty tz qx qy qz qw\n")
-        self._fh.flush()
         self.rows = 0
 
     def write(self, timestamp: float, pose: np.ndarray) -> None:
         assert self._fh is not None, "writer closed"
         self._fh.write(format_tum_row(float(timestamp), pose, self._scale) + "\n")
-        self._fh.flush()
         self.rows += 1
 
     def close(self) -> None:

@@ -5,6 +5,8 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 LAYOUTS = ("stereomis", "stereomis_raw", "scared", "plain", "frames", "video")
+#: the smallest frame side the tracking takes (pixels): OpenCV's DIS optical flow refuses smaller images
+MIN_FRAME_PX = 12
 
 
 def fixed(why: str, default):
@@ -31,7 +33,8 @@ class DataConfig:
         rectify_mode: ``full`` (OpenCV stereoRectify, zero disparity offset) or ``pseudo`` (undistort
             and align the principal points only; SCARED's calibrations are poor for full rectification).
         width, height: size frames are resized to (intrinsics scaled); 0 keeps the native size
-            (the configs for StereoMIS and SCARED use 640x512, the paper's half resolution).
+            (the configs for StereoMIS and SCARED use 640x512, the paper's half resolution); at
+            least :data:`MIN_FRAME_PX` each.
         use_mask_files: combine the dataset's instrument masks (``masks/``) when present.
         specular_threshold: a pixel whose maximum channel intensity (0-1) reaches this is specular.
         specular_dilate_px: radius of the dilation applied to the specular mask.
@@ -64,6 +67,9 @@ class DataConfig:
 
         need(self.width >= 0 and self.height >= 0, "data.width/height must be >= 0 (0 = native size)")
         need((self.width == 0) == (self.height == 0), "data.width and data.height: set both or neither")
+        need(self.width == 0 or min(self.width, self.height) >= MIN_FRAME_PX,
+             f"data.width and data.height must be at least {MIN_FRAME_PX} px (the optical flow's smallest image), "
+             f"got {self.width}x{self.height}")
         need(self.fps >= 0, "data.fps must be >= 0 (0 = from the data)")
         need(0 < self.specular_threshold, "data.specular_threshold must be > 0 (> 1 disables)")
         need(0 <= self.dark_threshold < 1, "data.dark_threshold must be in [0, 1) (0 disables)")

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from slam.io.datasets.base import StereoFrame
-from slam.io.datasets.config import DataConfig
+from slam.io.datasets.config import MIN_FRAME_PX, DataConfig
 from slam.io.datasets.masks import combine_masks, specular_mask
 from slam.io.datasets.selection import parse_frames
 from slam.errors import DataError
@@ -88,10 +88,16 @@ class StereoDataset:
         self.config = config
         self.processor = processor
         self.camera = processor.camera
+        if min(self.camera.width, self.camera.height) < MIN_FRAME_PX:
+            raise DataError(f"{self.path}: frames of {self.camera.width}x{self.camera.height} px are too small to track "
+                            f"(at least {MIN_FRAME_PX}x{MIN_FRAME_PX}: the optical flow's smallest image)")
         self.R1 = np.asarray(processor.R1, dtype=np.float64)
         self.num_frames_total = int(n_frames)
         if timestamps is None:
             fps = config.fps if config.fps and config.fps > 0 else DEFAULT_FPS
+            if not config.fps > 0 and self.num_frames_total > 1:
+                log.warning("%s: no timestamps (timestamps.txt, ground truth, a video's rate) and no --fps: the frames "
+                            "are taken at %g fps", self.path, DEFAULT_FPS)
             timestamps = np.arange(self.num_frames_total, dtype=np.float64) / fps
         self._timestamps = np.asarray(timestamps, dtype=np.float64)
         self._gt_poses = None if gt_poses is None else np.asarray(gt_poses, dtype=np.float64)
@@ -120,14 +126,18 @@ class StereoDataset:
     @property
     def fps(self) -> float:
         """The frame rate of this view (frames per second): from its timestamps' median step
-        (rounded to 1e-3), where they imply 1-1000 fps, else ``data.fps`` or ``DEFAULT_FPS``. A
-        view of every S-th frame runs at a S-th of the sequence's rate."""
+        (rounded to 1e-3), where they imply 1-1000 fps, else ``data.fps`` or ``DEFAULT_FPS`` (a
+        warning says so). A view of every S-th frame runs at a S-th of the sequence's rate."""
         stamps = self.timestamps
+        fallback = self.config.fps if self.config.fps > 0 else DEFAULT_FPS
         if len(stamps) > 1:
             step = float(np.median(np.diff(stamps)))
             if step > 0 and 1.0 <= 1.0 / step <= 1000.0:
                 return round(1.0 / step, 3)
-        return self.config.fps if self.config.fps > 0 else DEFAULT_FPS
+            log.warning("%s: the frames' timestamps step by %g (median), not 1-1000 frames a second: the frames are "
+                        "taken at %g fps (%s)", self.path, step, fallback,
+                        "--fps" if self.config.fps > 0 else "the default; --fps to give the rate")
+        return fallback
 
     def __iter__(self) -> Iterator[StereoFrame]:
         for i in range(len(self)):

@@ -11,7 +11,7 @@ calibration file.
                                      by order when the counts agree
       endoscope_calibration.yaml     or StereoCalibration.ini, calibration.yaml, calibration.json
                                      (slam.io.calibration.read_calibration), or data.calibration, or
-                                     the only .ini/.json/.yaml/.yml (a warning names it)
+                                     the only .ini/.json/.yaml/.yml/.xml (a warning names it)
       timestamps.txt                 optional: one timestamp per frame (seconds); else index / fps
       groundtruth.txt                optional, TUM, metres, T_wc of the original left camera
       masks/                         optional, per left frame (paired like the frames), non-zero = tissue
@@ -76,12 +76,12 @@ def find_stereo_folders(path: Path) -> Optional[tuple[Path, Path]]:
 #: files a sequence folder may hold that are never its calibration (a run's config, ``slam synth``'s
 #: description of the sequence)
 NOT_CALIBRATIONS = ("config.yaml", "synth.json")
-CANDIDATE_SUFFIXES = (".ini", ".json", ".yaml", ".yml")
+CANDIDATE_SUFFIXES = (".ini", ".json", ".yaml", ".yml", ".xml")
 
 
 def calibration_candidates(path: Path) -> list[Path]:
     """The files of folder ``path`` that may be its calibration (``.ini``, ``.json``, ``.yaml``,
-    ``.yml``; not :data:`NOT_CALIBRATIONS`), sorted by name."""
+    ``.yml``, ``.xml``; not :data:`NOT_CALIBRATIONS`), sorted by name."""
     return [p for p in sorted(path.iterdir()) if p.is_file() and p.suffix.lower() in CANDIDATE_SUFFIXES
             and p.name not in NOT_CALIBRATIONS]
 

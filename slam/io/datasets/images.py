@@ -6,6 +6,7 @@ PNGs spans 0-4095, not 0-65535), read once per sequence from its first frames.
 """
 from __future__ import annotations
 
+import logging
 import math
 import re
 from pathlib import Path
@@ -15,6 +16,8 @@ import cv2
 import numpy as np
 
 from slam.errors import DataError
+
+log = logging.getLogger("slam")
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 _NUMBER = re.compile(r"(\d+)")
@@ -50,23 +53,42 @@ def pairing_stem(path: Path) -> str:
     return "".join(parts).lower()
 
 
+def numbered_stem(path: Path) -> str:
+    """:func:`pairing_stem` with every number written without leading zeros (``frame_0007`` and
+    ``frame_7`` -> ``frame_7``): frames numbered with and without padding pair by their number."""
+    return _NUMBER.sub(lambda m: str(int(m.group(1))), pairing_stem(path))
+
+
+def _paired_by(key, left: list[Path], right: list[Path]) -> Optional[list[tuple[Path, Path]]]:
+    """``left`` and ``right`` paired by ``key(file)`` when every file of both has exactly one
+    partner, else None."""
+    left_keys = [key(p) for p in left]
+    by_key = {key(p): p for p in right}
+    if len(left) == len(right) == len(by_key) == len(set(left_keys)) and all(k in by_key for k in left_keys):
+        return [(p, by_key[k]) for p, k in zip(left, left_keys)]
+    return None
+
+
 def pair_files(left: list[Path], right: list[Path], left_dir: Path, right_dir: Path) -> list[tuple[Path, Path]]:
-    """Left and right files paired by their stems with the side token stripped, or by their order
-    when no stem pairs and the counts agree. DataError naming both folders otherwise."""
+    """Left and right files paired by their stems with the side token stripped, else by those
+    stems' numbers (``0007.png`` / ``7.png``), else by their natural order when no name pairs and
+    the counts agree. DataError naming both folders otherwise."""
     if not left:
         raise DataError(f"{left_dir}: no images ({', '.join(IMAGE_SUFFIXES)})")
-    by_stem = {pairing_stem(p): p for p in right}
-    stems = [pairing_stem(p) for p in left]
+    for key in (pairing_stem, numbered_stem):
+        pairs = _paired_by(key, left, right)
+        if pairs is not None:
+            return pairs
+    by_stem = {numbered_stem(p): p for p in right}
+    stems = [numbered_stem(p) for p in left]
     matched = [s for s in stems if s in by_stem]
-    if len(matched) == len(left) == len(right) and len(set(stems)) == len(stems):
-        return [(p, by_stem[s]) for p, s in zip(left, stems)]
     if not matched and len(left) == len(right):
         return list(zip(left, right))
     if matched:
         missing = [p.name for p, s in zip(left, stems) if s not in by_stem]
         extra = sorted(set(by_stem) - set(stems))
         detail = f"{len(missing)} left frames without a right one (first {missing[0]})" if missing else \
-            f"{len(extra)} right frames without a left one"
+            f"{len(extra)} right frames without a left one" if extra else "their names repeat a frame number"
         raise DataError(f"{left_dir} and {right_dir}: the frames do not pair: {detail}")
     raise DataError(f"{left_dir} has {len(left)} images but {right_dir} has {len(right)}, and their names "
                     "do not pair")
@@ -115,10 +137,39 @@ def to_rgb8(img: np.ndarray, depth: int, source: Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
+#: the units a ``timestamps.txt`` may be written in: name, units in a second
+TIME_UNITS = (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9))
+#: frame rates (fps) whose timestamps are taken as seconds (those of ``StereoDataset.fps``)
+SECONDS_RATES = (1.0, 1000.0)
+#: frame rates (fps) a camera records at: steps that give one in another unit are read in it
+CAMERA_RATES = (1.0, 120.0)
+
+
+def in_seconds(stamps: np.ndarray, source: Path) -> np.ndarray:
+    """Timestamps ``(N,)`` in seconds. Their median step decides the unit: seconds where it gives
+    1-1000 fps; else milliseconds, microseconds or nanoseconds where one of them gives 1-120 fps
+    (a warning names the unit and the rate: 40 ms steps are 25 fps, where in seconds they would be
+    one frame every 40 s); else as they are (the frame rate then falls back, with a warning)."""
+    if len(stamps) < 2:
+        return stamps
+    step = float(np.median(np.diff(stamps)))
+    if SECONDS_RATES[0] <= 1.0 / step <= SECONDS_RATES[1]:
+        return stamps
+    for name, per_second in TIME_UNITS:
+        rate = per_second / step
+        if CAMERA_RATES[0] <= rate <= CAMERA_RATES[1]:
+            log.warning("%s: steps of %g (median) read as %s (%.4g fps); the trajectory's timestamps are in seconds",
+                        source, step, name, rate)
+            return stamps / per_second
+    return stamps
+
+
 def read_timestamps(path: Path, n_frames: int) -> Optional[np.ndarray]:
-    """``timestamps.txt``: one timestamp (seconds) per frame and line, the last number of the line
-    (``index timestamp`` rows work too), ``#`` lines are comments. None when the file is absent;
-    DataError naming it for another count than ``n_frames`` or values that do not increase."""
+    """``timestamps.txt``: one timestamp per frame and line, the last number of the line (``index
+    timestamp`` rows work too), ``#`` lines are comments; in seconds, or in milliseconds,
+    microseconds or nanoseconds recognised by their steps (:func:`in_seconds`). None when the file
+    is absent; DataError naming it for another count than ``n_frames`` or values that do not
+    increase."""
     if not path.is_file():
         return None
     stamps = []
@@ -135,4 +186,4 @@ def read_timestamps(path: Path, n_frames: int) -> Optional[np.ndarray]:
         raise DataError(f"{path}: {len(stamps)} timestamps for {n_frames} frames (need one per frame)")
     if n_frames > 1 and not np.all(np.diff(stamps) > 0):
         raise DataError(f"{path}: timestamps must increase")
-    return stamps
+    return in_seconds(stamps, path)

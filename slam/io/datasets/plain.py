@@ -3,7 +3,8 @@
 ::
 
     <seq>/
-      left/*.png  right/*.png    rectified RGB views, paired by sorted file name (counts must match)
+      left/*.png  right/*.png    rectified RGB views in natural order (``2.png`` before ``10.png``),
+                                 paired by name or frame number (``0007.png`` / ``7.png``), else by order
       calibration.yaml           rectified fx fy cx cy baseline_mm width height (slam.io.calibration.read_plain_yaml)
       groundtruth.txt            optional, TUM, metres, T_wc of the left camera, one row per frame
       masks/<left file name>     optional, non-zero = tissue, 0 = instrument
@@ -20,6 +21,7 @@ from pathlib import Path
 from slam.io.calibration import fit_camera, read_plain_yaml
 from slam.io.datasets.config import DataConfig
 from slam.io.datasets.dataset import RawFrame, StereoDataset, first_readable_size, load_groundtruth, read_mask, read_rgb
+from slam.io.datasets.images import natural_key, pair_files
 from slam.errors import ConfigError, DataError
 from slam.io.rectification import ResizeOnly
 
@@ -29,7 +31,9 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
 def list_images(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    """The images of ``folder`` in natural order (``2.png`` before ``10.png``, as every layout)."""
+    return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+                  key=lambda p: natural_key(p.name))
 
 
 class PlainDataset(StereoDataset):
@@ -51,12 +55,11 @@ class PlainDataset(StereoDataset):
                 raise DataError(f"{d}: folder not found (plain layout needs left/ and right/)")
         if config.rectified == "no":
             raise ConfigError(f"rectified: no is not supported for plain folders ({path}): their images must be rectified")
-        self._left = list_images(left_dir)
-        self._right = list_images(right_dir)
-        if len(self._left) != len(self._right):
-            raise DataError(f"{left_dir} has {len(self._left)} images but {right_dir} has {len(self._right)}")
-        if not self._left:
+        left = list_images(left_dir)
+        if not left:
             raise DataError(f"{left_dir}: no images (*.png, *.jpg, *.jpeg)")
+        self._left, self._right = (list(side) for side in zip(*pair_files(left, list_images(right_dir), left_dir,
+                                                                             right_dir)))
         calib_path = path / CALIB_FILE
         camera = read_plain_yaml(calib_path)
         size = first_readable_size(self._left)
@@ -67,6 +70,7 @@ class PlainDataset(StereoDataset):
         stamps, poses = load_groundtruth(path / GT_FILE, n, None, config.fps)
         super().__init__(path, config, processor, n, stamps, poses)
         self._masks_dir = path / "masks"
+        self.calibration_path = calib_path
 
     def _read(self, index: int) -> RawFrame:
         left_path, right_path = self._left[index], self._right[index]
