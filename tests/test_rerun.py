@@ -277,6 +277,22 @@ def test_without_ground_truth_and_map_only_at_the_end(tmp_path):
     assert frames[(MAP, "Points3D:positions")] == [N - 1]
 
 
+def test_the_recording_is_written_beside_and_renamed_when_it_closes(tmp_path, monkeypatch):
+    path = tmp_path / "rec.rrd"
+    logger = RerunLogger(LoggingConfig(rerun=str(path)), _camera(), name="x")
+    assert not path.exists() and logger.writing.is_file() and logger.writing.parent == tmp_path
+    logger.close()
+    assert path.is_file() and path.stat().st_size > 0 and not logger.writing.exists()
+    # a rename that fails: one warning naming the recording, no partial file left
+    def refuse(src, dst):
+        raise PermissionError(13, "Permission denied")
+    monkeypatch.setattr(rl.os, "replace", refuse)
+    path2 = tmp_path / "refused.rrd"
+    logger = RerunLogger(LoggingConfig(rerun=str(path2)), _camera(), name="y")
+    logger.close()
+    assert not path2.exists() and not logger.writing.exists()
+
+
 def test_spawn_failure_falls_back_to_the_file(tmp_path, monkeypatch):
     import slam.app.rerun_log as rl
 

@@ -56,6 +56,7 @@ every ``logging.rerun_every``-th frame, 0, N, 2N, ...):
 from __future__ import annotations
 
 import logging
+import os
 import time
 import uuid
 from pathlib import Path
@@ -354,6 +355,10 @@ class RerunLogger:
         self.depth_range: Optional[tuple[float, float]] = None   # the scene's depths so far (depth_range)
         self._closed = False
         self.path: Optional[Path] = Path(config.rerun) if getattr(config, "rerun", "") else None
+        # the file being written: renamed to ``path`` when the recording closes (a run that stops at
+        # frame N still closes it, with frames up to N), so that ``path`` is never a partial file
+        self.writing: Optional[Path] = (None if self.path is None
+                                        else self.path.with_name(f".{self.path.stem}.partial{self.path.suffix}"))
         # a file alone gathers a few seconds of rows per chunk (each chunk carries ~1 kB of schema:
         # per frame and series at the SDK's 0.2 s); a viewer keeps the SDK's low latency
         batcher = None if self.spawn else rr.ChunkBatcherConfig(flush_tick=FILE_FLUSH_TICK_S)
@@ -386,14 +391,14 @@ class RerunLogger:
                 rr.spawn(port=port, connect=False, recording=self.rec)
                 sinks = [rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy")]
                 if self.path is not None:
-                    sinks.append(rr.FileSink(self.path))
+                    sinks.append(rr.FileSink(self.writing))
                 self.rec.set_sinks(*sinks, default_blueprint=blueprint)
                 return True
             except Exception as err:  # no viewer binary / no display: keep the file
                 log.warning("could not spawn the rerun viewer (%s)%s", err,
                             f"; recording to {self.path} only" if self.path else "")
         if self.path is not None:
-            self.rec.save(self.path, default_blueprint=blueprint)
+            self.rec.save(self.writing, default_blueprint=blueprint)
             return True
         return False
 
@@ -572,6 +577,17 @@ class RerunLogger:
             log.warning("rerun: %s", err)
         finally:
             self.rec.disconnect()
+            self._rename_recording()
+
+    def _rename_recording(self) -> None:
+        """The finished recording moved to its path (named in one warning where it cannot be)."""
+        if self.writing is None or not self.writing.is_file():
+            return
+        try:
+            os.replace(self.writing, self.path)
+        except OSError as err:
+            log.warning("rerun: could not write %s (%s)", self.path, err.strerror or err)
+            self.writing.unlink(missing_ok=True)
 
     def __enter__(self) -> "RerunLogger":
         return self

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
+from slam.app.run_folder import replaced_atomically, write_text_atomically
 from slam.app.status import is_result
 from slam.batch import protocols
 from slam.batch.reports import REPORTS
@@ -289,9 +290,11 @@ def write_report(req: EvaluateRequest, out: Path, rows: list[dict], notes: list[
     report = "\n\n".join([*sections, *([("\n".join(f"- {n}" for n in notes))] if notes else [])])
     print()
     print(report)
-    (out / "evaluation.md").write_text(report + "\n")
-    write_csv(rows, out / "evaluation.csv")
-    plot(rows, scenarios_of(rows) or [""], out / "evaluation.png", f"slam evaluate {Path(req.root).name}")
+    write_text_atomically(out / "evaluation.md", report + "\n")
+    with replaced_atomically(out / "evaluation.csv") as tmp:
+        write_csv(rows, tmp)
+    with replaced_atomically(out / "evaluation.png") as tmp:
+        plot(rows, scenarios_of(rows) or [""], tmp, f"slam evaluate {Path(req.root).name}")
     summary = {"protocol": req.protocol, "root": str(req.root), "out": str(out), "config": req.config,
                "overrides": req.overrides, "modes": req.modes or DEFAULT_MODES[req.protocol], "sweep": req.sweeps,
                "frames": req.frames, "batch": {**info, "cpus_per_task": req.batch.cpus_per_task,
@@ -299,7 +302,7 @@ def write_report(req: EvaluateRequest, out: Path, rows: list[dict], notes: list[
                "tasks": len(rows) + len(not_run), "resumed": resumed,
                "errors": sum(r["status"] != "ok" for r in rows),
                "not_run": not_run, "interrupted": interrupted, "notes": notes, "tables": figures, "rows": rows}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    write_text_atomically(out / "summary.json", json.dumps(summary, indent=2, default=str))
     print(f"\nwrote {out / 'evaluation.md'}, evaluation.csv, evaluation.png and summary.json")
     return status_of(rows, interrupted)
 

@@ -18,6 +18,7 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from slam.app.run_folder import write_text_atomically
 from slam.batch.tasks import MAP_ACCURACY, METRICS, RUN_LOG, RunTask, SynthTask
 
 #: what a task prints outside the project's logging, appended to ``run.log`` when it ends
@@ -132,7 +133,7 @@ def run_task(task: RunTask, report: Report) -> dict:
     if task.map_accuracy is not None and not result.interrupted and result.records:
         acc = keyframe_map_accuracy(Path(task.data), out, result.records[0].pose, task.map_accuracy.gt_depth,
                                     task.map_accuracy.png_scale_mm)
-        (out / MAP_ACCURACY).write_text(json.dumps(acc, indent=2))
+        write_text_atomically(out / MAP_ACCURACY, json.dumps(acc, indent=2))
     status = {0: "ok", 3: "not a result"}.get(exit_status(result), "interrupted")
     outcome = {"status": status, "frames": len(result.records), "seconds": time.perf_counter() - t0}
     if status == "not a result":
