@@ -89,12 +89,6 @@ class HealthConfig:
         flag_mm: a frame is also flagged where the two estimates' positions lie further apart
             than this (frame2model), and in both modes where the positional spread ``sigma_t`` of
             the pose it reports exceeds it (an uncertain pose). A flagged frame is not fused.
-        level_z: a frame is also flagged where one of its figures (the cost, the 2D and 3D residual
-            medians, the distance to the model's surface, the supported share) lies more than this
-            many robust spreads beyond the sequence's own level over its last 25 frames
-            (``slam.tracking.health.SequenceLevel``; health figure ``level_z``). Calibrated by
-            ``tools/calibrate_health.py`` on the generator's sequences (both looks, both modes, 25,
-            5 and 2.5 fps): the smallest bound that flags at most 2 % of the good frames. 0: off.
         covariance_scale_frame: (fixed; ``analysis.covariance_scale_frame``) ``s`` of the pose
             covariance ``s * sigma^2 * H^-1`` against a camera frame (the previous frame or a
             keyframe). The residuals of neighbouring pixels are correlated (one flow field, one
@@ -109,7 +103,6 @@ class HealthConfig:
 
     cross_check: float = 22.5
     flag_mm: float = 1.5
-    level_z: float = 0.0
     covariance_scale_frame: float = fixed("fitted by tools/calibrate_covariance.py (analysis.covariance_scale_frame)",
                                           6300.0)
     covariance_scale_model: float = fixed("fitted by tools/calibrate_covariance.py (analysis.covariance_scale_model)",
@@ -118,7 +111,6 @@ class HealthConfig:
     def __post_init__(self):
         need(self.cross_check >= 0, "health.cross_check must be >= 0 (0 = no cross-check)")
         need(self.flag_mm > 0, "health.flag_mm must be > 0")
-        need(self.level_z >= 0, "health.level_z must be >= 0 (0 = off)")
 
 
 @dataclass

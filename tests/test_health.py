@@ -9,8 +9,7 @@ import pytest
 import torch
 
 from slam.config import HealthConfig
-from slam.tracking.health import (LEVEL_MIN_FRAMES, LEVEL_MIN_SPREAD, HealthMonitor, RunningLevel, SequenceLevel,
-                                  health_summary, nees, relative_error)
+from slam.tracking.health import HealthMonitor, health_summary, nees, relative_error
 from vo.config import SolverConfig
 from vo.health import PoseFit, pose_fit, weighted_median
 from vo.lie import se3_exp, se3_log
@@ -97,52 +96,20 @@ def _track(r2: float, r3: float, failed: bool = False) -> TrackResult:
                        valid_pixels=900, flow=z, w2d=z, w3d=z, timings_ms={}, fit=fit, support=0.9)
 
 
-def test_the_covariance_is_scaled_by_what_the_frame_was_tracked_against():
+def test_residuals_are_compared_with_the_running_median_of_good_frames():
     monitor = HealthMonitor(HealthConfig(covariance_scale_frame=3.0, covariance_scale_model=5.0))
-    figures, cov = monitor.assess(_track(0.1, 0.2), against_model=False)
+    first, cov = monitor.assess(_track(0.1, 0.2), against_model=False)
+    assert math.isnan(first["residual_2d_ratio"])
     np.testing.assert_allclose(cov, np.eye(6) * 3.0 * 2.0 / 4.0)
+    for _ in range(5):
+        monitor.assess(_track(0.1, 0.2), against_model=False)
     figures, cov = monitor.assess(_track(0.4, 0.2, failed=True), against_model=True)
+    assert figures["residual_2d_ratio"] == pytest.approx(4.0) and figures["residual_3d_ratio"] == pytest.approx(1.0)
     np.testing.assert_allclose(cov, np.eye(6) * 5.0 * 2.0 / 4.0)
     assert figures["sigma_t_mm"] == pytest.approx(math.sqrt(3 * 2.5))
-    assert figures["residual_2d_px"] == 0.4 and figures["support"] == 0.9
-
-
-def test_a_figure_far_from_the_sequences_level_scores_a_large_robust_z():
-    rng = np.random.default_rng(0)
-    level = RunningLevel(worse=1)
-    assert math.isnan(level.z(1.0))                           # no level yet
-    for value in np.exp(rng.normal(0.0, 0.2, 30)):            # a cost around 1, spread 0.2 in log
-        level.add(value)
-    assert abs(level.z(1.0)) < 1.0
-    assert level.z(np.e) == pytest.approx(1.0 / 0.2, rel=0.35)          # e-fold: about 5 spreads
-    assert level.z(31.0) > 12                                            # the real sequence's frame 122
-    assert level.z(0.5) < 0                                              # better than the level
-    low = RunningLevel(worse=-1)                                         # support: lower is worse
-    for _ in range(10):
-        low.add(0.9)
-    assert low.z(0.45) == pytest.approx(np.log(2) / LEVEL_MIN_SPREAD)   # a steady level: the spread's floor
-    low.add(float("nan"))
-    low.add(0.0)                                                         # ignored
-    assert len(low._logs) == 10
-
-
-def test_the_sequence_level_keeps_model_and_frame_references_apart_and_names_the_worst_figure():
-    level = SequenceLevel()
-    steady = {"cost": 1.0, "residual_2d_px": 1.0, "residual_3d_mm": 0.2, "plane_residual_mm": 0.2, "support": 0.9}
-    for _ in range(LEVEL_MIN_FRAMES):
-        level.add(steady, against_model=True)
-        level.add({**steady, "cost": 10.0}, against_model=False)
-    z, name = level.score({**steady, "cost": 10.0, "residual_2d_px": 2.0}, against_model=True)
-    assert name == "cost" and z == pytest.approx(np.log(10) / LEVEL_MIN_SPREAD)
-    z, name = level.score({**steady, "cost": 10.0, "residual_2d_px": 2.0}, against_model=False)
-    assert name == "residual_2d_px"                                    # (the frame level's cost is 10)
-    z, name = level.score({**steady, "support": 0.3, "plane_residual_mm": float("nan")}, against_model=True)
-    assert name == "support" and z > 10
-    monitor = HealthMonitor(HealthConfig())
-    figures = dict(steady)
-    z, _ = monitor.against_level(figures, against_model=True)
-    assert math.isnan(z) and math.isnan(figures["level_z"])          # the frame joined the level
-    assert len(monitor.level._levels[True]["cost"]._logs) == 1
+    # a failed frame does not enter the history
+    again, _ = monitor.assess(_track(0.1, 0.2), against_model=False)
+    assert again["residual_2d_ratio"] == pytest.approx(1.0)
 
 
 def test_relative_error_and_nees():

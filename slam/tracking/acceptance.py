@@ -70,19 +70,17 @@ class PlainAcceptance:
     """The registration's estimate, checked by the VO core, assessed, flagged when uncertain.
 
     Args:
-        health: the sequence's health monitor (its level: :class:`slam.tracking.health.SequenceLevel`).
+        health: the sequence's health monitor (running medians of the residuals).
         flag_mm: ``health.flag_mm``.
-        level_z: ``health.level_z``.
     """
 
     rebuilds = reanchors = 0
     flows_to_previous_frame = False
     TRUSTED = "tracked"      # (what an unflagged pose is called where no map confirms it)
 
-    def __init__(self, health: HealthMonitor, flag_mm: float, level_z: float):
+    def __init__(self, health: HealthMonitor, flag_mm: float):
         self.health = health
         self.flag_mm = flag_mm
-        self.level_z = level_z
 
     def independent_estimate(self, view: View, init: Optional[np.ndarray], ahead: Optional[AheadFlow],
                              result: FrameResult, state: TrackState) -> None:
@@ -96,7 +94,6 @@ class PlainAcceptance:
             self.fail(result, track)
             return False
         self.take(view, ref, track, result)
-        self.flag_off_level(result)
         self.flag_uncertain(result)
         return True
 
@@ -137,16 +134,6 @@ class PlainAcceptance:
         if not result.flagged and sigma_t > self.flag_mm:
             self.flag(result, f"uncertain pose (sigma_t {sigma_t:.2f} mm{why})", model_disagrees=False)
 
-    def flag_off_level(self, result: FrameResult) -> None:
-        """Health figure ``level_z`` (the frame's figures against the sequence's own level), and a
-        flag where it exceeds ``health.level_z``: a frame whose cost, residuals, distance to the
-        model's surface or support jump away from what the sequence has shown, however small its
-        covariance (the correspondences are fixed before the solve: a wrong flow is confident)."""
-        z, figure = self.health.against_level(result.health, against_model=result.reference == "model")
-        if not result.flagged and self.level_z > 0 and z > self.level_z:
-            self.flag(result, f"{figure} {result.health[figure]:.3g} off the sequence's level (z {z:.1f})",
-                      model_disagrees=False)
-
     def flag(self, result: FrameResult, reason: str, model_disagrees: bool = True) -> None:
         result.flagged, result.reason = True, reason
 
@@ -168,7 +155,7 @@ class CrossCheckAcceptance(PlainAcceptance):
     """The model view's estimate cross-checked against the last frame's (see the module docstring).
 
     Args:
-        health, flag_mm, level_z: as :class:`PlainAcceptance`.
+        health, flag_mm: as :class:`PlainAcceptance`.
         cross_check: the sequence's :class:`CrossCheck` (``health.cross_check``, ``flag_mm``).
         odometry: the VO core (the estimate against the last frame).
         covariance_scale_frame: ``health.covariance_scale_frame``.
@@ -194,10 +181,10 @@ class CrossCheckAcceptance(PlainAcceptance):
     flows_to_previous_frame = True       # (the independent estimate's flow can be computed ahead)
     TRUSTED = "confirmed"
 
-    def __init__(self, health: HealthMonitor, flag_mm: float, level_z: float, cross_check: CrossCheck,
-                 odometry: StereoOdometry, covariance_scale_frame: float, forget_view: Callable[[np.ndarray], int],
+    def __init__(self, health: HealthMonitor, flag_mm: float, cross_check: CrossCheck, odometry: StereoOdometry,
+                 covariance_scale_frame: float, forget_view: Callable[[np.ndarray], int],
                  set_aside: Callable[[int], None]):
-        super().__init__(health, flag_mm, level_z)
+        super().__init__(health, flag_mm)
         self.cross_check = cross_check
         self.odometry = odometry
         self.covariance_scale_frame = covariance_scale_frame
@@ -258,10 +245,8 @@ class CrossCheckAcceptance(PlainAcceptance):
                 self._step_sigma = sigma_t_mm(result.covariance)
                 self.cross_check.tracked_against_frame(result.covariance)
                 result.covariance = self.cross_check.P.copy()
-                self.flag_off_level(result)
                 self.report_spread(result)
                 return True
-        self.flag_off_level(result)
         self.flag_uncertain(result)
         return True
 

@@ -2,12 +2,9 @@
 covariance, and the normalised estimation error squared (NEES) where the ground truth is known.
 
 The correspondences are fixed before the solve, so where the image gives little the flow is
-wrong with confidence, not the normal equations singular: besides the share of supported pixels
-and the covariance ``Sigma = s * sigma^2 * H^-1`` (:mod:`vo.health`), the figures compare each
-frame with the sequence's own recent level (:class:`RunningLevel`: the cost, the residual medians,
-the plane residual against the model and the support, each as a robust z-score of its logarithm
-against its last ``RUNNING_FRAMES`` frames), so that a frame whose cost jumps thirtyfold is seen
-whatever the scene's usual cost.
+wrong with confidence, not the normal equations singular: the figures compare each frame with the
+sequence's own recent history (residual medians against their running medians), besides the
+share of supported pixels and the covariance ``Sigma = s * sigma^2 * H^-1`` (:mod:`vo.health`).
 """
 from __future__ import annotations
 
@@ -24,79 +21,19 @@ from vo.odometry import TrackResult
 # good frames whose residual medians make the running medians (about a second of video at 25 fps)
 RUNNING_FRAMES = 25
 
-# the figures whose level a sequence keeps, and +1 where higher is worse (-1: lower)
-LEVEL_FIGURES = {"cost": 1, "residual_2d_px": 1, "residual_3d_mm": 1, "plane_residual_mm": 1, "support": -1}
-# frames a level needs before it scores one
-LEVEL_MIN_FRAMES = 5
-# the least spread (natural log) a level's z-score divides by: a sequence whose figure barely
-# moves does not make a 10 % change an outlier
-LEVEL_MIN_SPREAD = 0.1
-
 # the figures of tracking.csv, in order (nan where a frame has none)
 FIGURES = ("valid_pixels", "support", "iterations", "cost", "round_trip_px", "residual_2d_px", "residual_3d_mm",
-           "model_coverage", "plane_residual_mm", "plane_cost_share", "level_z", "cross_check_d2",
-           "cross_check_mm", "sigma_t_mm", "sigma_r_deg", "nees")
-
-
-class RunningLevel:
-    """A figure's level over a sequence's last ``RUNNING_FRAMES`` frames, and how far a new value
-    lies from it: the robust z-score ``worse * (log v - median) / max(1.4826 * MAD, LEVEL_MIN_SPREAD)``
-    of its logarithm (the figures are positive and vary by factors).
-
-    Args:
-        worse: +1 where a higher value is worse, -1 where a lower one is.
-    """
-
-    def __init__(self, worse: int = 1):
-        self.worse = worse
-        self._logs: deque = deque(maxlen=RUNNING_FRAMES)
-
-    def z(self, value: float) -> float:
-        """The z-score of ``value`` (nan before ``LEVEL_MIN_FRAMES`` values or for a value that is
-        not positive and finite)."""
-        if len(self._logs) < LEVEL_MIN_FRAMES or not (np.isfinite(value) and value > 0):
-            return float("nan")
-        logs = np.asarray(self._logs)
-        median = float(np.median(logs))
-        spread = max(1.4826 * float(np.median(np.abs(logs - median))), LEVEL_MIN_SPREAD)
-        return self.worse * (float(np.log(value)) - median) / spread
-
-    def add(self, value: float) -> None:
-        """Take ``value`` into the level (ignored where it is not positive and finite)."""
-        if np.isfinite(value) and value > 0:
-            self._logs.append(float(np.log(value)))
-
-
-class SequenceLevel:
-    """The levels of a sequence's :data:`LEVEL_FIGURES`, kept apart for frames tracked against the
-    model view and against a camera frame (their costs differ)."""
-
-    def __init__(self):
-        self._levels = {against: {name: RunningLevel(worse) for name, worse in LEVEL_FIGURES.items()}
-                        for against in (True, False)}
-
-    def score(self, figures: dict, against_model: bool) -> tuple[float, str]:
-        """The largest z-score of a frame's ``figures`` against the level and the figure that
-        gives it (nan and "" where none scores)."""
-        best, name = float("nan"), ""
-        for figure, level in self._levels[against_model].items():
-            z = level.z(figures.get(figure, float("nan")))
-            if np.isfinite(z) and not z <= best:
-                best, name = z, figure
-        return best, name
-
-    def add(self, figures: dict, against_model: bool) -> None:
-        """Take a tracked frame's ``figures`` into the level."""
-        for figure, level in self._levels[against_model].items():
-            level.add(figures.get(figure, float("nan")))
+           "residual_2d_ratio", "residual_3d_ratio", "model_coverage", "plane_residual_mm",
+           "plane_cost_share", "cross_check_d2", "cross_check_mm", "sigma_t_mm", "sigma_r_deg", "nees")
 
 
 class HealthMonitor:
-    """One sequence's health bookkeeping: its level (:class:`SequenceLevel`)."""
+    """One sequence's health bookkeeping: the running medians of its good frames' residuals."""
 
     def __init__(self, config: HealthConfig):
         self.config = config
-        self.level = SequenceLevel()
+        self._r2: deque = deque(maxlen=RUNNING_FRAMES)
+        self._r3: deque = deque(maxlen=RUNNING_FRAMES)
 
     def assess(self, track: Optional[TrackResult], against_model: bool) -> tuple[dict, Optional[np.ndarray]]:
         """The health figures of a frame tracked as ``track`` (None: not tracked) against a
@@ -112,17 +49,23 @@ class HealthMonitor:
         cfg = self.config
         cov = fit.covariance(cfg.covariance_scale_model if against_model else cfg.covariance_scale_frame)
         figures.update(residual_2d_px=fit.residual_2d_px, residual_3d_mm=fit.residual_3d_mm,
+                       residual_2d_ratio=_ratio(fit.residual_2d_px, self._r2),
+                       residual_3d_ratio=_ratio(fit.residual_3d_mm, self._r3),
                        sigma_t_mm=float(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))),
                        sigma_r_deg=float(np.degrees(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))))
+        if not track.failed:
+            for history, value in ((self._r2, fit.residual_2d_px), (self._r3, fit.residual_3d_mm)):
+                if np.isfinite(value):
+                    history.append(value)
         return figures, cov
 
-    def against_level(self, figures: dict, against_model: bool) -> tuple[float, str]:
-        """A tracked frame's largest z-score against the sequence's level (health figure
-        ``level_z``) and the figure that gives it; the frame's figures then join the level."""
-        z, figure = self.level.score(figures, against_model)
-        figures["level_z"] = z
-        self.level.add(figures, against_model)
-        return z, figure
+
+def _ratio(value: float, history: deque) -> float:
+    """``value`` over the median of ``history`` (nan before there is one)."""
+    if not history or not np.isfinite(value):
+        return float("nan")
+    ref = float(np.median(history))
+    return value / ref if ref > 0 else float("nan")
 
 
 def relative_error(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:

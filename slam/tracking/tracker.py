@@ -177,10 +177,9 @@ class Tracker(SequenceMapping):
         hc = self.config.health
         health = HealthMonitor(hc)
         if not (frame2model and hc.cross_check > 0):
-            return PlainAcceptance(health, hc.flag_mm, hc.level_z)
-        return CrossCheckAcceptance(health, hc.flag_mm, hc.level_z, CrossCheck(hc.cross_check, hc.flag_mm),
-                                    self.odometry, hc.covariance_scale_frame, self._forget_view,
-                                    self.recovery.set_aside)
+            return PlainAcceptance(health, hc.flag_mm)
+        return CrossCheckAcceptance(health, hc.flag_mm, CrossCheck(hc.cross_check, hc.flag_mm), self.odometry,
+                                    hc.covariance_scale_frame, self._forget_view, self.recovery.set_aside)
 
     # ------------------------------------------------------------------ what the run reports
     @property
