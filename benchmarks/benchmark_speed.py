@@ -2,12 +2,14 @@
 
     .venv/bin/python tools/benchmark_speed.py [--frames 100] [--sizes 320x256 640x512]
                                              [--modes frame2frame frame2model] [--set key=value ...]
-                                             [--scenarios scanning rigid] [--repeat 3]
+                                             [--scenarios scanning rigid] [--real [DIR]] [--repeat 3]
                                              [--repo before=/tmp/base --repo after=.]
 
 For each scenario and size it renders a synthetic sequence (seed 4242, an evaluation seed), then
 runs `slam run` in a fresh process per (mode, size) in the default configuration (plus any --set),
-and prints a table of per-stage milliseconds (wall time: stages of different threads overlap),
+(``--real``: also the real SCARED sequence of ``tools/check_accuracy.py``, at its 640x512 and 5 fps,
+its ATE against the reference trajectory beside it: ``--real`` alone reads ``$ENDOSLAM_REAL`` or
+the cache, ``--real DIR`` the folder), and prints a table of per-stage milliseconds (wall time: stages of different threads overlap),
 the CPU milliseconds per frame of the main, read-ahead and mapping threads and of the whole
 process (with the pools' workers), fps, peak memory and ATE, so speed bought with accuracy shows
 in the same table; below it the thread pools' sizes (torch, OpenCV, numba).
@@ -50,6 +52,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--scenarios", "--scenario", nargs="+", default=["scanning"])
     ap.add_argument("--out", default="runs/benchmark_speed")
     ap.add_argument("--set", action="append", default=[])
+    ap.add_argument("--real", nargs="?", const="", default=None, metavar="DIR",
+                    help="also the real sequence (check_accuracy's; DIR, $ENDOSLAM_REAL or the cache)")
     ap.add_argument("--repo", action="append", default=[], metavar="NAME=PATH",
                     help="a checkout to run (repeatable; default: this one)")
     ap.add_argument("--repeat", type=int, default=1, help="runs per checkout and case (the median is reported)")
@@ -60,15 +64,18 @@ def main(argv: list[str] | None = None) -> None:
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     repos = [tuple(r.split("=", 1)) for r in args.repo] or [("this", str(Path(__file__).resolve().parents[1]))]
+    sequences = [(scenario, size, synthesise(out, scenario, size, args.frames), [])
+                 for scenario in args.scenarios for size in args.sizes]
+    if args.real is not None:
+        sequences.append(("real", "640x512", real_sequence(out, args.real), ["data.fps=5"]))
     runs = []
     for rep in range(args.repeat):
-        for scenario in args.scenarios:
-            for size in args.sizes:
-                data = synthesise(out, scenario, size, args.frames)
-                for mode in args.modes:
-                    for name, tree in repos:      # alternating: the machine's drift hits every checkout alike
-                        runs.append({"repo": name, "scenario": scenario, "size": size, "mode": mode, "rep": rep,
-                                     **run_case(tree, data, out / f"{name}_{scenario}_{mode}_{size}", mode, args.set)})
+        for scenario, size, data, sets in sequences:
+            for mode in args.modes:
+                for name, tree in repos:      # alternating: the machine's drift hits every checkout alike
+                    runs.append({"repo": name, "scenario": scenario, "size": size, "mode": mode, "rep": rep,
+                                 **run_case(tree, data, out / f"{name}_{scenario}_{mode}_{size}", mode,
+                                            sets + args.set)})
     rows = median_rows(runs, repos)
     table = speed_table(rows, multi=len(repos) > 1 or args.repeat > 1)
     if len(repos) > 1:
@@ -88,6 +95,13 @@ def synthesise(out: Path, scenario: str, size: str, frames: int) -> Path:
         subprocess.run([sys.executable, "-m", "slam", "synth", str(data), "--scenario", scenario, "--frames",
                         str(frames), "--size", size, "--seed", str(SEED)], check=True, capture_output=True)
     return data
+
+
+def real_sequence(out: Path, given: str) -> Path:
+    """The real sequence with its reference as ``groundtruth.txt`` (a folder of links in ``out``)."""
+    from benchmarks.accuracy_panel import REAL_TRAJECTORY, moved_copy, real_folder
+
+    return moved_copy(real_folder(given or None), REAL_TRAJECTORY, 0, out / "data_real")
 
 
 def run_case(tree: str, data: Path, run_dir: Path, mode: str, sets: list[str]) -> dict:

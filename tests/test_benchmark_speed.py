@@ -53,3 +53,22 @@ def test_speed_benchmark_compares_checkouts_run_by_run(tmp_path, capsys):
     table = (out / "speed.md").read_text()
     ratio = rows["new"]["fps"] / rows["base"]["fps"]
     assert "median fps over base's:" in table and f"| scanning | 160x128 | frame2frame | {ratio:.2f}x |" in table
+
+
+def test_the_real_sequence_is_run_from_a_folder_of_links_carrying_its_reference(tmp_path):
+    from benchmarks.accuracy_panel import REAL_TRAJECTORY
+
+    real = tmp_path / "scared"
+    for name in ("left_image", "right_image"):
+        (real / name).mkdir(parents=True)
+    (real / "calibration.json").write_text("{}")
+    data = B.real_sequence(tmp_path / "out", str(real))
+    import numpy as np
+
+    from slam.io.tum import read_tum
+
+    (stamps, poses), (ref_stamps, ref_poses) = read_tum(data / "groundtruth.txt"), read_tum(REAL_TRAJECTORY)
+    np.testing.assert_allclose(stamps, ref_stamps)
+    np.testing.assert_allclose(poses, ref_poses, atol=1e-6)      # the reference as it is (not moved)
+    assert (data / "left_image").resolve() == (real / "left_image").resolve()
+    assert (data / "calibration.json").is_symlink()
