@@ -52,6 +52,17 @@ REBUILD_AFTER = 10
 REANCHOR_AFTER = 2
 
 
+def within_reach(track: Optional[TrackResult]) -> bool:
+    """Whether a registration's flow median lies within what DIS from scratch reliably finds
+    (``slam.tracking.recovery.LARGE_FLOW`` of the image width)."""
+    from slam.tracking.recovery import GATE_STRIDE, LARGE_FLOW
+
+    if track is None or track.flow is None:
+        return False
+    flow = track.flow[..., ::GATE_STRIDE, ::GATE_STRIDE]
+    return float(flow.norm(dim=1).median()) < LARGE_FLOW * track.flow.shape[-1]
+
+
 def sigma_t_mm(covariance: np.ndarray) -> float:
     """The translation spread ``sqrt(trace)`` (mm) of a ``(6, 6)`` pose covariance."""
     return float(np.sqrt(max(np.trace(covariance[:3, :3]), 0.0)))
@@ -259,7 +270,10 @@ class CrossCheckAcceptance(PlainAcceptance):
             return self.keep_frame_estimate(estimate, result, state, "the model view's estimate has no fit")
         model = Estimate(relative(state.pose, result.pose), result.covariance)
         result.other_estimates += [model.relative, estimate.estimate.relative]
-        check = self.cross_check.check(model, estimate.estimate, chain_checked=self.chain_checked)
+        # the map may refute a chain holding a relocalisation only where its own registration's
+        # flow lies within what DIS reliably finds: beyond it the map's match is as lost as any
+        judged_by_map = not self.chain_checked and within_reach(result.track)
+        check = self.cross_check.check(model, estimate.estimate, chain_checked=not judged_by_map)
         result.health.update(cross_check_d2=check.d2, cross_check_mm=check.distance_mm)
         result.covariance = check.covariance
         self._confirms = check.agree
@@ -272,7 +286,7 @@ class CrossCheckAcceptance(PlainAcceptance):
                               f"(d2 {check.d2:.0f}): {kept} estimate kept")
             if check.kept == "frame":
                 result.track = estimate.track
-            result.snapped_to_map = (check.kept == "model" and not self.chain_checked
+            result.snapped_to_map = (check.kept == "model" and judged_by_map
                                      and not check.d2 <= self.cross_check.limit_d2)
         return state.pose @ check.relative
 
