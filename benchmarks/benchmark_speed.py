@@ -49,7 +49,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--sizes", nargs="+", default=["320x256", "640x512"])
     ap.add_argument("--modes", nargs="+", default=["frame2frame", "frame2model"])
-    ap.add_argument("--scenarios", "--scenario", nargs="+", default=["scanning"])
+    ap.add_argument("--scenarios", "--scenario", nargs="*", default=["scanning"],
+                    help="synthetic scenarios (none: only --real)")
     ap.add_argument("--out", default="runs/benchmark_speed")
     ap.add_argument("--set", action="append", default=[])
     ap.add_argument("--real", nargs="?", const="", default=None, metavar="DIR",
