@@ -96,7 +96,7 @@ class CorrespondenceConfig:
     backend: Literal["dis", "raft"] = "dis"
     dis_preset: Preset = "medium"
     dis_stereo_preset: Preset = "medium"
-    dis_lr_check_preset: Literal["auto", "ultrafast", "fast", "medium"] = "auto"
+    dis_lr_check_preset: Literal["auto", "ultrafast", "fast", "medium"] = "medium"
     raft_checkpoint: str = ""
     lr_check_px: float = 1.0
     dis_match_exposure: bool = fixed("an analysis switch (analysis.match_exposure)", True)
