@@ -6,12 +6,12 @@
                                              [--repo before=/tmp/base --repo after=.]
 
 For each scenario and size it renders a synthetic sequence (seed 4242, an evaluation seed), then
-runs `slam run` in a fresh process per (mode, size) in the default configuration (plus any --set),
-(``--real``: also the real SCARED sequence of ``tools/check_accuracy.py``, at its 640x512 and 5 fps,
-its ATE against the reference trajectory beside it: ``--real`` alone reads ``$ENDOSLAM_REAL`` or
-the cache, ``--real DIR`` the folder), and prints a table of per-stage milliseconds (wall time: stages of different threads overlap),
-the CPU milliseconds per frame of the main, read-ahead and mapping threads and of the whole
-process (with the pools' workers), fps, peak memory and ATE, so speed bought with accuracy shows
+runs `slam run` in a fresh process per (mode, size) in the default configuration (plus any --set).
+``--real`` adds the real SCARED sequence of ``tools/check_accuracy.py`` (640x512, 5 fps; its ATE
+against the reference trajectory; ``--real`` alone reads ``$ENDOSLAM_REAL`` or the cache, ``--real
+DIR`` the folder), and ``--scenarios`` with no name leaves the synthetic ones out. It prints a
+table of per-stage milliseconds (wall time: stages of different threads overlap), the CPU
+milliseconds per frame of the main, read-ahead and mapping threads and of the whole process (with the pools' workers), fps, peak memory and ATE, so speed bought with accuracy shows
 in the same table; below it the thread pools' sizes (torch, OpenCV, numba).
 
 With ``--repo NAME=PATH`` (repeatable) it runs each checkout's own ``slam`` (e.g. a ``git

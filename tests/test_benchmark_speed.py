@@ -4,7 +4,10 @@ from __future__ import annotations
 import json
 import sys
 
+import numpy as np
+
 from benchmarks import benchmark_speed as B
+from slam.io.tum import read_tum
 
 
 def test_speed_benchmark_reports_runs_and_the_map_cost(tmp_path, monkeypatch, capsys):
@@ -63,10 +66,6 @@ def test_the_real_sequence_is_run_from_a_folder_of_links_carrying_its_reference(
         (real / name).mkdir(parents=True)
     (real / "calibration.json").write_text("{}")
     data = B.real_sequence(tmp_path / "out", str(real))
-    import numpy as np
-
-    from slam.io.tum import read_tum
-
     (stamps, poses), (ref_stamps, ref_poses) = read_tum(data / "groundtruth.txt"), read_tum(REAL_TRAJECTORY)
     np.testing.assert_allclose(stamps, ref_stamps)
     np.testing.assert_allclose(poses, ref_poses, atol=1e-6)      # the reference as it is (not moved)
