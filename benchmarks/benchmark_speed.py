@@ -11,8 +11,9 @@ runs `slam run` in a fresh process per (mode, size) in the default configuration
 against the reference trajectory; ``--real`` alone reads ``$ENDOSLAM_REAL`` or the cache, ``--real
 DIR`` the folder), and ``--scenarios`` with no name leaves the synthetic ones out. It prints a
 table of per-stage milliseconds (wall time: stages of different threads overlap), the CPU
-milliseconds per frame of the main, read-ahead and mapping threads and of the whole process (with the pools' workers), fps, peak memory and ATE, so speed bought with accuracy shows
-in the same table; below it the thread pools' sizes (torch, OpenCV, numba).
+milliseconds per frame of the main, read-ahead and mapping threads and of the whole process (with
+the pools' workers), fps, peak memory and ATE, so speed bought with accuracy shows in the same
+table; below it the thread pools' sizes (torch, OpenCV, numba).
 
 With ``--repo NAME=PATH`` (repeatable) it runs each checkout's own ``slam`` (e.g. a ``git
 worktree`` of a baseline commit) on the same sequences, the checkouts alternating run by run,
