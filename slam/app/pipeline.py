@@ -46,7 +46,7 @@ class FrameRecord:
     pose: np.ndarray  # T_wc of the original left camera, mm
     failed: bool
     reason: str = ""
-    reference: str = ""  # previous_frame | keyframe (an earlier frame, tracking.keyframe_gap) | model | first
+    reference: str = ""  # previous_frame | keyframe (an earlier frame, tracking.keyframe_gap) | model | chain | first
     iterations: int = 0
     cost: float = float("nan")
     health: dict = field(default_factory=dict)   # slam.tracking.health.FIGURES of the frame

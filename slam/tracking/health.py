@@ -24,7 +24,7 @@ RUNNING_FRAMES = 25
 # the figures of tracking.csv, in order (nan where a frame has none)
 FIGURES = ("valid_pixels", "support", "iterations", "cost", "round_trip_px", "residual_2d_px", "residual_3d_mm",
            "residual_2d_ratio", "residual_3d_ratio", "model_coverage", "plane_residual_mm",
-           "plane_cost_share", "cross_check_d2", "cross_check_mm", "sigma_t_mm", "sigma_r_deg", "nees")
+           "plane_cost_share", "cross_check_d2", "cross_check_mm", "chain_correction_mm", "sigma_t_mm", "sigma_r_deg", "nees")
 
 
 class HealthMonitor:

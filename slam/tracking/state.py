@@ -47,7 +47,8 @@ class FrameResult:
         reason: '' for a good frame.
         reference: what the frame was tracked against: ``first`` (the first frame),
             ``previous_frame``, ``keyframe`` (an earlier frame, ``tracking.keyframe_gap``),
-            ``model`` (the map's view) or ``groundtruth`` (``tracking.poses: groundtruth``).
+            ``model`` (the map's view), ``chain`` (a frame between model frames: the last frame's
+            estimate, ``tracking.model_every``) or ``groundtruth`` (``tracking.poses: groundtruth``).
         track: the VO core's result (flow, weight maps, solver figures), None without a solve.
         keyframe: the sequence position of the keyframe the frame was tracked against, else None.
         reference_position: the sequence position of the frame at whose pose the reference sits
@@ -81,6 +82,9 @@ class FrameResult:
         map_correction: ``(4, 4)`` where the map ended an unconfirmed stretch at this frame (it
             confirmed the chain, or snapped it back): its pose against the chain's, ``T_map
             T_chain^-1`` (world frame, mm; :mod:`slam.tracking.chain_repair`); else None.
+        between: a frame between model frames (``tracking.model_every``): its pose the chain's
+            from the last frame, not registered against the map and not fused; corrected with the
+            next model frame.
     """
 
     pose: np.ndarray
@@ -103,6 +107,7 @@ class FrameResult:
     agrees_with_map: bool = False
     snapped_to_map: bool = False
     map_correction: Optional[np.ndarray] = None
+    between: bool = False
 
     @property
     def trusted(self) -> bool:
