@@ -55,6 +55,12 @@ class TrackingConfig:
             networks are trained on pairs 1-5 frames apart. The depth filter
             (``depth.temporal_gain``) still runs from each frame to the one before it. A failed
             frame makes the last tracked frame the keyframe (docs/experiments.md).
+        model_every: frame2model with the cross-check: the largest gap between model frames, the
+            frames registered against the map's view (and fused). The frames between keep the
+            cross-check's estimate against the last frame as their pose, their spread the filter's
+            ``P`` summed since the last model frame (``slam.tracking.model_frames``); a frame whose
+            chain is unconfirmed or uncertain is a model frame at once. 1: every frame (the paper's
+            frame2model).
         keyframe_still_mm: (fixed) keep a keyframe only while the last tracked motion moved the
             camera less than this (mm per frame at 25 fps; 0: the gap applies to every frame).
         min_model_coverage: (fixed) :data:`MIN_MODEL_COVERAGE`.
@@ -63,6 +69,7 @@ class TrackingConfig:
     mode: Literal["frame2frame", "frame2model"] = "frame2frame"
     refine_passes: int = 0
     keyframe_gap: int = 5
+    model_every: int = 1
     keyframe_still_mm: float = fixed("a constant scaled by the frame rate (at_frame_rate)", 0.1)
     min_model_coverage: float = fixed("the model view's coverage below which the last frame is the reference",
                                       MIN_MODEL_COVERAGE)
@@ -70,6 +77,7 @@ class TrackingConfig:
     def __post_init__(self):
         need(0 <= self.refine_passes <= 5, "tracking.refine_passes must be in 0..5")
         need(self.keyframe_gap >= 1, "tracking.keyframe_gap must be >= 1 (1 = every frame against the previous one)")
+        need(self.model_every >= 1, "tracking.model_every must be >= 1 (1 = every frame against the map)")
         need(self.keyframe_still_mm >= 0, "tracking.keyframe_still_mm must be >= 0 (0 = keyframes for a moving camera too)")
         need(0.0 <= self.min_model_coverage <= 1.0, "tracking.min_model_coverage must be in [0, 1]")
 

@@ -198,6 +198,7 @@ class CrossCheckAcceptance(PlainAcceptance):
         self.confident_steps = 0
         self.anchor = np.zeros((6, 6))       # the map's own uncertainty against the world (re-anchorings)
         self.anchored_at: Optional[int] = None
+        self.chained = False          # frames between model frames since the map last confirmed
         self._confirms = False        # the frame being accepted was confirmed by the map
         self._step_sigma = np.inf     # its own step's spread (a frame tracked against the previous one)
 
@@ -263,7 +264,7 @@ class CrossCheckAcceptance(PlainAcceptance):
         result.health.update(cross_check_d2=check.d2, cross_check_mm=check.distance_mm)
         result.covariance = check.covariance
         self._confirms = check.agree
-        if not self.chain_confirmed and check.kept != "frame":      # (the map ends an unconfirmed stretch)
+        if (not self.chain_confirmed or self.chained) and check.kept != "frame":   # (the map ends a stretch)
             chain = state.pose @ estimate.estimate.relative
             result.map_correction = (state.pose @ check.relative) @ np.linalg.inv(chain)
         if not check.agree:
@@ -298,6 +299,7 @@ class CrossCheckAcceptance(PlainAcceptance):
         if self._confirms and not result.flagged:
             result.trust, result.agrees_with_map = "confirmed", True
             self.unconfirmed_since, self.unchecked_since, self.confident_steps = None, None, 0
+            self.chained = False
             if result.reference == "model":
                 self.flagged_in_row = 0
             self.add_anchor(result)
@@ -317,6 +319,24 @@ class CrossCheckAcceptance(PlainAcceptance):
         if self.confident_steps >= REANCHOR_AFTER:
             self.reanchor(position, result)
 
+    def chain_step(self, position: int, estimate: FrameEstimate, result: FrameResult, state: TrackState) -> None:
+        """A frame between model frames: the last frame's ``estimate`` is its pose, the filter's
+        ``P`` with the step's covariance added its spread (flagged where uncertain); trusted as
+        ``tracked`` until the next model frame confirms or corrects it."""
+        self.assess(result, estimate.track)
+        self.cross_check.tracked_against_frame(estimate.estimate.covariance)
+        result.pose = state.pose @ estimate.estimate.relative
+        result.covariance = self.cross_check.P.copy()
+        result.between = True
+        self.chained = True
+        self.flag_uncertain(result)
+        if result.flagged:
+            result.trust = "flagged"
+            self.leave_chain(position)
+        else:
+            result.trust = "tracked"
+        self.add_anchor(result)
+
     def add_anchor(self, result: FrameResult) -> None:
         """The map's anchor uncertainty added to the pose's covariance (a pose confirmed by a map
         re-anchored after an uncertain stretch is no surer than the map); flagged where the sum is
@@ -325,7 +345,7 @@ class CrossCheckAcceptance(PlainAcceptance):
             return
         result.covariance = result.covariance + self.anchor
         self.flag_uncertain(result, f": the map re-anchored at frame {self.anchored_at}")
-        if result.flagged and result.trust == "confirmed":
+        if result.flagged and result.trust in ("confirmed", "tracked"):
             result.trust = "flagged"
 
     def reanchor(self, position: int, result: FrameResult) -> None:
@@ -390,4 +410,5 @@ class CrossCheckAcceptance(PlainAcceptance):
         """The pose is the map's own again (a loop closed: the graph moved it onto the old map)."""
         self.cross_check.reset()
         self.unconfirmed_since, self.unchecked_since, self.confident_steps = None, None, 0
+        self.chained = False
         self.anchor, self.anchored_at = np.zeros((6, 6)), None

@@ -58,7 +58,7 @@ class ChainRepair:
             self._stretch.clear()               # (re-anchored or rebuilt from the chain: no correction known)
             self._held = position
             return []
-        if result.trusted or result.snapped_to_map:
+        if (result.trusted and not result.between) or result.snapped_to_map:
             repaired = self._correct(position, result.map_correction)
             self._held = position
             return repaired

@@ -81,6 +81,9 @@ class FrameResult:
         map_correction: ``(4, 4)`` where the map ended an unconfirmed stretch at this frame (it
             confirmed the chain, or snapped it back): its pose against the chain's, ``T_map
             T_chain^-1`` (world frame, mm; :mod:`slam.tracking.chain_repair`); else None.
+        between: a frame between model frames (``tracking.model_every``): its pose the chain's
+            from the last frame, not registered against the map and not fused; corrected with the
+            next model frame.
     """
 
     pose: np.ndarray
@@ -103,6 +106,7 @@ class FrameResult:
     agrees_with_map: bool = False
     snapped_to_map: bool = False
     map_correction: Optional[np.ndarray] = None
+    between: bool = False
 
     @property
     def trusted(self) -> bool:

@@ -26,6 +26,8 @@ frames, logs and writes results. Poses are those of the rectified left camera (`
 """
 from __future__ import annotations
 
+import os
+
 import time
 from typing import Optional
 
@@ -38,6 +40,7 @@ from slam.tracking.chain_repair import ChainRepair
 from slam.tracking.cross_check import CrossCheck
 from slam.tracking.graph import LoopClosureGraph, NoGraph
 from slam.tracking.health import HealthMonitor
+from slam.tracking.model_frames import EveryFrame, ModelFrameSchedule
 from slam.tracking.map_fusion import EveryPixel, LearnedWeight, NoFusion, SurfelFusion
 from slam.tracking.mapping_stage import BackgroundMapping, InlineMapping
 from slam.tracking.poses import relative
@@ -159,6 +162,9 @@ class Tracker(SequenceMapping):
             self.odometry, config.health.covariance_scale_frame, camera.width)
         self.references = self._reference_policy(frame2model)
         self.acceptance = self._acceptance_policy(frame2model)
+        self.model_frames = (ModelFrameSchedule(config.tracking.model_every, config.health.flag_mm)
+                             if frame2model and config.health.cross_check > 0 and config.tracking.model_every > 1
+                             else EveryFrame())
         self.start = LastMotionStart() if config.solver.init == "constant_velocity" else IdentityStart()
         self.repair = ChainRepair()
 
@@ -167,7 +173,7 @@ class Tracker(SequenceMapping):
         depth_filter = DepthFilter(cfg.depth.temporal_still_mm) if self.odometry.filters_depth() else NoDepthFilter()
         if frame2model:
             return ModelViewReference(depth_filter, self._render, self.odometry, self.recovery.active_from,
-                                      cfg.tracking.refine_passes, cfg.tracking.min_model_coverage,
+                                      cfg.tracking.refine_passes, float(os.environ.get("EXP_COVERAGE", cfg.tracking.min_model_coverage)),
                                       lambda: self.acceptance.chain_checked)
         if cfg.tracking.keyframe_gap > 1:
             return StillCameraKeyframes(depth_filter, cfg.tracking.keyframe_gap, cfg.tracking.keyframe_still_mm)
@@ -215,6 +221,9 @@ class Tracker(SequenceMapping):
         if self.recovery.relocalised_after_gap(self, position, view, result):
             return self.finish_early(position, result)
         estimate = self.acceptance.independent_estimate(view, self.start(state), ahead, result, state)
+        if self.model_frames.between(position, estimate, self.acceptance):
+            return self.track_between(position, estimate, result)
+        self.model_frames.model_frame(position)
         self.mapping.settle()
         ref = self.references.choose(state, result)
         result.reference, result.reference_position, result.keyframe = ref.kind, ref.position, ref.keyframe
@@ -235,6 +244,24 @@ class Tracker(SequenceMapping):
         self.advance(position, track.view, pose, result)
         self.recovery.remember(position, track.view, pose, result)
         self.graph.add(self, position, track.view, pose, result)
+        self.hand_over(result)
+        return result
+
+    def track_between(self, position: int, estimate, result: FrameResult) -> FrameResult:
+        """A frame between model frames: the last frame's estimate is its pose
+        (:mod:`slam.tracking.model_frames`); not fused, no graph keyframe."""
+        state = self.state
+        track = estimate.track
+        result.reference, result.reference_position = "previous_frame", state.position
+        result.track, result.view = track, track.view
+        self.acceptance.chain_step(position, estimate, result, state)
+        pose = result.pose
+        state.velocity = relative(state.pose, pose)
+        self.repair_stretch(position, pose, result)
+        if result.fuses and not os.environ.get("EXP_NOFUSE"):
+            self.mapping.fuse(track.view, track.w3d, pose, position, self.recovery.active_from(position))
+        self.advance(position, track.view, pose, result)
+        self.recovery.remember(position, track.view, pose, result)
         self.hand_over(result)
         return result
 
