@@ -69,7 +69,7 @@ class TrackingConfig:
     mode: Literal["frame2frame", "frame2model"] = "frame2frame"
     refine_passes: int = 0
     keyframe_gap: int = 5
-    model_every: int = 1
+    model_every: int = 5
     keyframe_still_mm: float = fixed("a constant scaled by the frame rate (at_frame_rate)", 0.1)
     min_model_coverage: float = fixed("the model view's coverage below which the last frame is the reference",
                                       MIN_MODEL_COVERAGE)
