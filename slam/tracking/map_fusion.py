@@ -98,7 +98,7 @@ class NoFusion:
 
     map = None
 
-    def fuse(self, view: View, w3d, pose, position: int, active_from: Optional[int]) -> list:
+    def fuse(self, view: View, w3d, pose, position: int, active_from: Optional[int], scale: float = 1.0) -> list:
         return []
 
 
@@ -118,12 +118,15 @@ class SurfelFusion:
         self.exposure = FusionExposure()
 
     def fuse(self, view: View, w3d: Optional[torch.Tensor], pose, position: int,
-             active_from: Optional[int]) -> list:
+             active_from: Optional[int], scale: float = 1.0) -> list:
         """Fuse ``view`` at ``pose`` (rectified ``T_wc``, mm) as frame ``position``, weighted by its
         ``(1, 1, H, W)`` learned ``w3d`` where the weight policy takes one; only into the surfels
         fused from ``active_from`` on (None: all). Returns the ``(stage, ms)`` it took."""
         t0 = time.perf_counter()
         valid = view.valid[0, 0]
+        weight = self.weight(w3d, valid)
+        if scale != 1.0:
+            weight = (valid.to(view.depth.dtype) if weight is None else weight) * scale
         self.map.fuse(view.depth[0, 0], self.exposure.colour(view), self.K, torch.as_tensor(pose, dtype=torch.float32),
-                      frame_index=position, weight=self.weight(w3d, valid), valid=valid, active_from=active_from)
+                      frame_index=position, weight=weight, valid=valid, active_from=active_from)
         return [("fusion", (time.perf_counter() - t0) * 1000.0)]

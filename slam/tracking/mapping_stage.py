@@ -72,9 +72,9 @@ class InlineMapping:
     def map(self):
         return self.fusion.map
 
-    def fuse(self, view, w3d, pose, position: int, active_from: Optional[int]) -> None:
+    def fuse(self, view, w3d, pose, position: int, active_from: Optional[int], scale: float = 1.0) -> None:
         """Fuse ``view`` at ``pose`` (as :meth:`SurfelFusion.fuse`) now."""
-        self.handover.timings += self.fusion.fuse(view, w3d, pose, position, active_from)
+        self.handover.timings += self.fusion.fuse(view, w3d, pose, position, active_from, scale)
 
     def settle(self) -> None:
         """(Nothing in flight.)"""
@@ -110,14 +110,14 @@ class BackgroundMapping(InlineMapping):
     def map(self):
         return self._map
 
-    def fuse(self, view, w3d, pose, position: int, active_from: Optional[int]) -> None:
+    def fuse(self, view, w3d, pose, position: int, active_from: Optional[int], scale: float = 1.0) -> None:
         """Start fusing ``view`` at ``pose`` in the mapping thread (after the fusion in flight)."""
         self.settle()
-        self._in_flight = self._pool.submit(self._fuse, view, w3d, pose, position, active_from)
+        self._in_flight = self._pool.submit(self._fuse, view, w3d, pose, position, active_from, scale)
 
-    def _fuse(self, view, w3d, pose, position: int, active_from: Optional[int]) -> tuple[list, float]:
+    def _fuse(self, view, w3d, pose, position: int, active_from: Optional[int], scale: float = 1.0) -> tuple[list, float]:
         t_cpu = time.thread_time()
-        timings = self.fusion.fuse(view, w3d, pose, position, active_from)
+        timings = self.fusion.fuse(view, w3d, pose, position, active_from, scale)
         return timings, (time.thread_time() - t_cpu) * 1000.0
 
     def settle(self) -> None:

@@ -259,7 +259,8 @@ class Tracker(SequenceMapping):
         state.velocity = relative(state.pose, pose)
         self.repair_stretch(position, pose, result)
         if result.fuses and not os.environ.get("EXP_NOFUSE"):
-            self.mapping.fuse(track.view, track.w3d, pose, position, self.recovery.active_from(position))
+            self.mapping.fuse(track.view, track.w3d, pose, position, self.recovery.active_from(position),
+                              float(os.environ.get("EXP_BETWEEN_WEIGHT", "0.2")))
         self.advance(position, track.view, pose, result)
         self.recovery.remember(position, track.view, pose, result)
         self.hand_over(result)
