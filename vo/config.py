@@ -55,11 +55,13 @@ class CorrespondenceConfig:
             ``LR_CHECK_FAST_MIN_WIDTH`` px wide (640x512 and above), else ``medium``
             (:func:`lr_check_preset`; at 320x256 ``fast`` makes the check less selective). At
             640x512 ``fast`` costs 7 ms against ``medium``'s 38 and is not "within 1 %": on the
-            real SCARED sequence frame2frame 1.33 mm against 1.38 with ``medium``, frame2model
-            within its run-to-run spread, the map's error 0.274 against 0.260 mm; on this
-            project's weak-texture look frame2frame 0.44 against 0.60 mm; on another generator's
-            weak-texture scene ``fast`` was the worse by 35 % (docs/experiments.md, "Does the
-            left-right check need a `medium` flow back?").
+            accuracy gate's full panel (56 cases) ``medium`` was worse on 19 and better on 11. On
+            the real SCARED sequence ``fast`` gives frame2frame 1.33 mm against 1.38 and, at
+            2.5 fps, 2.27 against 3.80 (frame2model 1.18 against 7.38), but the 5-fps map's
+            error 0.271 against 0.258 mm; on the generator it is the better in frame2frame on the
+            rigid and scanning weak looks, the random look and the raw video (by 6-35 %) and the
+            worse on the breathing and deforming weak looks (by 16-41 %); on another generator's weak-texture scene it was the worse
+            by 35 % (docs/benchmarks.md, "the left-right check at `medium` against `auto`").
         dis_match_exposure: brighten the darker image of each pair to the other's mean before
             DIS (``vo.correspondence.dis.match_exposure``: exposure jumps between frames).
         raft_checkpoint: path to a RAFT checkpoint (RAFT or RAFT-small, told apart by its tensors).
